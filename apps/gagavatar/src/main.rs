@@ -1,0 +1,31 @@
+//! The `gagavatar` command line. Each subcommand lives in its own `cmd_*.rs` and stays thin:
+//! parsing, progress and file handling here, the work in the library crates.
+
+mod cmd_flame;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Debug, Parser)]
+#[command(name = "gagavatar", version, about = "GAGAvatar in Rust: one-shot animatable Gaussian head avatars")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// FLAME head model utilities.
+    #[command(subcommand)]
+    Flame(cmd_flame::FlameCmd),
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Flame(cmd) => cmd_flame::run(cmd),
+    };
+    if let Err(err) = result {
+        eprintln!("error: {err:#}");
+        std::process::exit(1);
+    }
+}

@@ -1,0 +1,1 @@
+//! FLAME head model (spec section 9). Work in progress.
