@@ -1,0 +1,438 @@
+//! Per-Gaussian preprocessing (spec section 7): view transform, covariance from the
+//! unnormalised quaternion, EWA projection with the 1.3 tan(fov) clamp and the 0.3 dilation,
+//! conic, screen radius and tile rectangle; and its exact backward.
+
+use crate::camera::Camera;
+use crate::real::Real;
+use rayon::prelude::*;
+
+pub const TILE: usize = 16;
+/// Gaussians at or nearer than this view depth are culled (the release's frustum test).
+pub const NEAR_CULL: f64 = 0.2;
+/// The EWA Jacobian is evaluated with x/z and y/z clamped to this multiple of tan(fov/2).
+pub const FOV_CLAMP: f64 = 1.3;
+/// Low-pass dilation added to both diagonal entries of the 2D covariance.
+pub const DILATION: f64 = 0.3;
+
+/// Camera constants in the kernel's float type.
+#[derive(Debug, Clone, Copy)]
+pub struct CamK<T> {
+    pub rot: [[T; 3]; 3],
+    pub trans: [T; 3],
+    pub focal: T,
+    pub fx: T,
+    pub fy: T,
+    pub w: T,
+    pub h: T,
+    pub lim: T,
+    pub width: usize,
+    pub height: usize,
+    pub grid_x: usize,
+    pub grid_y: usize,
+}
+
+impl<T: Real> CamK<T> {
+    pub fn new(cam: &Camera) -> Self {
+        let (fx, fy) = cam.focal_px();
+        let mut rot = [[T::ZERO; 3]; 3];
+        for (i, row) in rot.iter_mut().enumerate() {
+            for (j, v) in row.iter_mut().enumerate() {
+                *v = T::lit(cam.rot[i][j]);
+            }
+        }
+        Self {
+            rot,
+            trans: cam.trans.map(T::lit),
+            focal: T::lit(cam.focal),
+            fx: T::lit(fx),
+            fy: T::lit(fy),
+            w: T::lit(cam.width as f64),
+            h: T::lit(cam.height as f64),
+            // tan(fov/2) = 1 / focal on both axes.
+            lim: T::lit(FOV_CLAMP / cam.focal),
+            width: cam.width,
+            height: cam.height,
+            grid_x: cam.width.div_ceil(TILE),
+            grid_y: cam.height.div_ceil(TILE),
+        }
+    }
+
+    #[inline(always)]
+    fn view(&self, p: [T; 3]) -> [T; 3] {
+        let r = &self.rot;
+        [
+            r[0][0] * p[0] + r[0][1] * p[1] + r[0][2] * p[2] + self.trans[0],
+            r[1][0] * p[0] + r[1][1] * p[1] + r[1][2] * p[2] + self.trans[1],
+            r[2][0] * p[0] + r[2][1] * p[1] + r[2][2] * p[2] + self.trans[2],
+        ]
+    }
+}
+
+/// Projected Gaussians, struct-of-arrays. A culled Gaussian has `radius == 0` and an empty rect.
+#[derive(Debug, Clone, Default)]
+pub struct Projected<T> {
+    pub mx: Vec<T>,
+    pub my: Vec<T>,
+    /// Conic (inverse 2D covariance) entries A, B, C.
+    pub ca: Vec<T>,
+    pub cb: Vec<T>,
+    pub cc: Vec<T>,
+    /// Dilated 2D covariance diagonal, used to bound where alpha can reach 1/255.
+    pub va: Vec<T>,
+    pub vc: Vec<T>,
+    pub opacity: Vec<T>,
+    pub depth: Vec<T>,
+    pub radius: Vec<u32>,
+    /// Tile rectangle [x0, x1) x [y0, y1).
+    pub rect: Vec<[u16; 4]>,
+}
+
+/// Quaternion (r, x, y, z) to the 3x3 matrix of spec section 7, without normalisation.
+#[inline(always)]
+pub fn quat_to_mat<T: Real>(q: [T; 4]) -> [[T; 3]; 3] {
+    let [r, x, y, z] = q;
+    let one = T::ONE;
+    let two = T::lit(2.0);
+    [
+        [
+            one - two * (y * y + z * z),
+            two * (x * y - r * z),
+            two * (x * z + r * y),
+        ],
+        [
+            two * (x * y + r * z),
+            one - two * (x * x + z * z),
+            two * (y * z - r * x),
+        ],
+        [
+            two * (x * z - r * y),
+            two * (y * z + r * x),
+            one - two * (x * x + y * y),
+        ],
+    ]
+}
+
+/// Everything the forward computes for one Gaussian that the backward needs again.
+struct Geo<T> {
+    t: [T; 3],
+    rq: [[T; 3]; 3],
+    /// M = Rq diag(s)
+    m: [[T; 3]; 3],
+    /// Sigma = M M^T
+    sigma: [[T; 3]; 3],
+    /// Clamped tan ratios and whether each was clamped (+1 / -1) or not (0).
+    clamp: [i8; 2],
+    j: [[T; 3]; 2],
+    /// P = J W (2x3)
+    p: [[T; 3]; 2],
+    a: T,
+    b: T,
+    c: T,
+}
+
+#[inline(always)]
+fn geometry<T: Real>(cam: &CamK<T>, mean: [T; 3], scale: [T; 3], quat: [T; 4]) -> Option<Geo<T>> {
+    let t = cam.view(mean);
+    if !(t[2] > T::lit(NEAR_CULL)) {
+        return None;
+    }
+    let rq = quat_to_mat(quat);
+    let mut m = [[T::ZERO; 3]; 3];
+    for i in 0..3 {
+        for k in 0..3 {
+            m[i][k] = rq[i][k] * scale[k];
+        }
+    }
+    let mut sigma = [[T::ZERO; 3]; 3];
+    for i in 0..3 {
+        for k in 0..3 {
+            sigma[i][k] = m[i][0] * m[k][0] + m[i][1] * m[k][1] + m[i][2] * m[k][2];
+        }
+    }
+    let tz = t[2];
+    let mut clamp = [0i8; 2];
+    let mut tc = [T::ZERO; 2];
+    for a in 0..2 {
+        let r = t[a] / tz;
+        let rc = if r < -cam.lim {
+            clamp[a] = -1;
+            -cam.lim
+        } else if r > cam.lim {
+            clamp[a] = 1;
+            cam.lim
+        } else {
+            r
+        };
+        tc[a] = rc * tz;
+    }
+    let tz2 = tz * tz;
+    let j = [
+        [cam.fx / tz, T::ZERO, -(cam.fx * tc[0]) / tz2],
+        [T::ZERO, cam.fy / tz, -(cam.fy * tc[1]) / tz2],
+    ];
+    let w = &cam.rot;
+    let mut p = [[T::ZERO; 3]; 2];
+    for i in 0..2 {
+        for k in 0..3 {
+            p[i][k] = j[i][0] * w[0][k] + j[i][1] * w[1][k] + j[i][2] * w[2][k];
+        }
+    }
+    // cov2 = P Sigma P^T
+    let mut ps = [[T::ZERO; 3]; 2];
+    for i in 0..2 {
+        for k in 0..3 {
+            ps[i][k] = p[i][0] * sigma[0][k] + p[i][1] * sigma[1][k] + p[i][2] * sigma[2][k];
+        }
+    }
+    let dot = |u: &[T; 3], v: &[T; 3]| u[0] * v[0] + u[1] * v[1] + u[2] * v[2];
+    let a = dot(&ps[0], &p[0]) + T::lit(DILATION);
+    let b = dot(&ps[0], &p[1]);
+    let c = dot(&ps[1], &p[1]) + T::lit(DILATION);
+    Some(Geo {
+        t,
+        rq,
+        m,
+        sigma,
+        clamp,
+        j,
+        p,
+        a,
+        b,
+        c,
+    })
+}
+
+/// Pixel-space centre: `ndc = focal * x / z`, `pixel = ((ndc + 1) * size - 1) / 2`.
+#[inline(always)]
+fn mean2d<T: Real>(cam: &CamK<T>, t: &[T; 3]) -> (T, T) {
+    let half = T::lit(0.5);
+    let ndc_x = cam.focal * (t[0] / t[2]);
+    let ndc_y = cam.focal * (t[1] / t[2]);
+    (
+        ((ndc_x + T::ONE) * cam.w - T::ONE) * half,
+        ((ndc_y + T::ONE) * cam.h - T::ONE) * half,
+    )
+}
+
+/// Raw per-Gaussian inputs of one (Gaussian set, camera) pair; `geom` rows are
+/// `[mean(3), opacity(1), scale(3), quat(4)]`.
+pub const GEOM: usize = 11;
+
+/// Projects all Gaussians in parallel. Results depend only on each Gaussian, so they are
+/// identical for any thread count.
+pub fn project<T: Real>(cam: &CamK<T>, geom: &[T]) -> Projected<T> {
+    let n = geom.len() / GEOM;
+    let rows: Vec<_> = geom
+        .par_chunks(GEOM)
+        .with_min_len(1024)
+        .map(|g| project_one(cam, g))
+        .collect();
+    let mut out = Projected {
+        mx: Vec::with_capacity(n),
+        my: Vec::with_capacity(n),
+        ca: Vec::with_capacity(n),
+        cb: Vec::with_capacity(n),
+        cc: Vec::with_capacity(n),
+        va: Vec::with_capacity(n),
+        vc: Vec::with_capacity(n),
+        opacity: Vec::with_capacity(n),
+        depth: Vec::with_capacity(n),
+        radius: Vec::with_capacity(n),
+        rect: Vec::with_capacity(n),
+    };
+    for r in rows {
+        out.mx.push(r.0[0]);
+        out.my.push(r.0[1]);
+        out.ca.push(r.0[2]);
+        out.cb.push(r.0[3]);
+        out.cc.push(r.0[4]);
+        out.va.push(r.0[5]);
+        out.vc.push(r.0[6]);
+        out.opacity.push(r.0[7]);
+        out.depth.push(r.0[8]);
+        out.radius.push(r.1);
+        out.rect.push(r.2);
+    }
+    out
+}
+
+type Row<T> = ([T; 9], u32, [u16; 4]);
+
+#[inline(always)]
+fn project_one<T: Real>(cam: &CamK<T>, g: &[T]) -> Row<T> {
+    let culled = ([T::ZERO; 9], 0, [0; 4]);
+    let mean = [g[0], g[1], g[2]];
+    let opacity = g[3];
+    let scale = [g[4], g[5], g[6]];
+    let quat = [g[7], g[8], g[9], g[10]];
+    let Some(geo) = geometry(cam, mean, scale, quat) else {
+        return culled;
+    };
+    let (a, b, c) = (geo.a, geo.b, geo.c);
+    let det = a * c - b * b;
+    if det == T::ZERO {
+        return culled;
+    }
+    let (ca, cb, cc) = (c / det, -b / det, a / det);
+    let half = T::lit(0.5);
+    let mid = half * (a + c);
+    let lambda = mid + (mid * mid - det).fmax(T::lit(0.1)).sqrt();
+    let radius_f = (T::lit(3.0) * lambda.sqrt()).ceil();
+    let (mx, my) = mean2d(cam, &geo.t);
+    let radius = radius_f.as_f64();
+    // The release truncates toward zero and clamps to [0, grid]; for clamped results this equals
+    // floor.
+    let span = |centre: f64, grid: usize| -> (usize, usize) {
+        let lo = ((centre - radius) / TILE as f64).floor();
+        let hi = ((centre + radius + (TILE - 1) as f64) / TILE as f64).floor();
+        let clampi = |v: f64| -> usize { v.clamp(0.0, grid as f64) as usize };
+        (clampi(lo), clampi(hi))
+    };
+    let (x0, x1) = span(mx.as_f64(), cam.grid_x);
+    let (y0, y1) = span(my.as_f64(), cam.grid_y);
+    if (x1 - x0) * (y1 - y0) == 0 {
+        return culled;
+    }
+    (
+        [mx, my, ca, cb, cc, a, c, opacity, geo.t[2]],
+        radius as u32,
+        [x0 as u16, x1 as u16, y0 as u16, y1 as u16],
+    )
+}
+
+/// Gradients of the loss w.r.t. the per-Gaussian screen-space quantities.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Grad2D<T> {
+    pub mx: T,
+    pub my: T,
+    pub ca: T,
+    pub cb: T,
+    pub cc: T,
+    pub opacity: T,
+}
+
+/// Chain rule from screen space back to `[mean, opacity, scale, quat]` for one Gaussian, exact
+/// for the forward above (including the zero gradient of clamped tan ratios).
+pub fn project_backward_one<T: Real>(cam: &CamK<T>, g: &[T], d: &Grad2D<T>, out: &mut [T]) {
+    let mean = [g[0], g[1], g[2]];
+    let scale = [g[4], g[5], g[6]];
+    let quat = [g[7], g[8], g[9], g[10]];
+    out.iter_mut().for_each(|v| *v = T::ZERO);
+    let Some(geo) = geometry(cam, mean, scale, quat) else {
+        return;
+    };
+    out[3] = d.opacity;
+    let (a, b, c) = (geo.a, geo.b, geo.c);
+    let det = a * c - b * b;
+    let q = [[c / det, -b / det], [-b / det, a / det]];
+    let half = T::lit(0.5);
+    let gq = [[d.ca, half * d.cb], [half * d.cb, d.cc]];
+    // dL/dS2 = -Q G_Q Q (Q symmetric)
+    let mut qg = [[T::ZERO; 2]; 2];
+    for i in 0..2 {
+        for k in 0..2 {
+            qg[i][k] = q[i][0] * gq[0][k] + q[i][1] * gq[1][k];
+        }
+    }
+    let mut gs = [[T::ZERO; 2]; 2];
+    for i in 0..2 {
+        for k in 0..2 {
+            gs[i][k] = -(qg[i][0] * q[0][k] + qg[i][1] * q[1][k]);
+        }
+    }
+    // cov2 = P Sigma P^T: dL/dSigma = P^T G P, dL/dP = 2 G P Sigma (G, Sigma symmetric).
+    let p = &geo.p;
+    let mut gp = [[T::ZERO; 3]; 2]; // G P
+    for i in 0..2 {
+        for k in 0..3 {
+            gp[i][k] = gs[i][0] * p[0][k] + gs[i][1] * p[1][k];
+        }
+    }
+    let mut gsig = [[T::ZERO; 3]; 3];
+    for i in 0..3 {
+        for k in 0..3 {
+            gsig[i][k] = p[0][i] * gp[0][k] + p[1][i] * gp[1][k];
+        }
+    }
+    let two = T::lit(2.0);
+    let mut dp = [[T::ZERO; 3]; 2];
+    for i in 0..2 {
+        for k in 0..3 {
+            dp[i][k] = two
+                * (gp[i][0] * geo.sigma[0][k] + gp[i][1] * geo.sigma[1][k] + gp[i][2] * geo.sigma[2][k]);
+        }
+    }
+    // P = J W  =>  dL/dJ = dL/dP W^T
+    let w = &cam.rot;
+    let mut dj = [[T::ZERO; 3]; 2];
+    for i in 0..2 {
+        for k in 0..3 {
+            dj[i][k] = dp[i][0] * w[k][0] + dp[i][1] * w[k][1] + dp[i][2] * w[k][2];
+        }
+    }
+    let t = geo.t;
+    let tz = t[2];
+    let tz2 = tz * tz;
+    let tz3 = tz2 * tz;
+    let mut dt = [T::ZERO; 3];
+    // J00 = fx/z, J11 = fy/z
+    dt[2] -= dj[0][0] * cam.fx / tz2;
+    dt[2] -= dj[1][1] * cam.fy / tz2;
+    // J02 = -fx tx/z^2 (free) or -fx (+-lim)/z (clamped); likewise J12.
+    for (axis, f) in [(0usize, cam.fx), (1usize, cam.fy)] {
+        let djx = dj[axis][2];
+        match geo.clamp[axis] {
+            0 => {
+                dt[axis] -= djx * f / tz2;
+                dt[2] += djx * two * f * t[axis] / tz3;
+            }
+            s => {
+                let lim = if s > 0 { cam.lim } else { -cam.lim };
+                dt[2] += djx * f * lim / tz2;
+            }
+        }
+    }
+    let _ = &geo.j;
+    // Mean in pixels: px = fx x/z + const.
+    dt[0] += d.mx * cam.fx / tz;
+    dt[1] += d.my * cam.fy / tz;
+    dt[2] -= (d.mx * cam.fx * t[0] + d.my * cam.fy * t[1]) / tz2;
+    // t = W p + trans  =>  dL/dp = W^T dL/dt
+    for k in 0..3 {
+        out[k] = w[0][k] * dt[0] + w[1][k] * dt[1] + w[2][k] * dt[2];
+    }
+    // Sigma = M M^T, M = Rq diag(s)  =>  dL/dM = 2 G_Sigma M
+    let m = &geo.m;
+    let mut dm = [[T::ZERO; 3]; 3];
+    for i in 0..3 {
+        for k in 0..3 {
+            dm[i][k] = two * (gsig[i][0] * m[0][k] + gsig[i][1] * m[1][k] + gsig[i][2] * m[2][k]);
+        }
+    }
+    let rq = &geo.rq;
+    let mut dr = [[T::ZERO; 3]; 3];
+    for k in 0..3 {
+        out[4 + k] = dm[0][k] * rq[0][k] + dm[1][k] * rq[1][k] + dm[2][k] * rq[2][k];
+        for i in 0..3 {
+            dr[i][k] = dm[i][k] * scale[k];
+        }
+    }
+    let [r, x, y, z] = quat;
+    let four = T::lit(4.0);
+    // Derivatives of each rotation entry w.r.t. (r, x, y, z).
+    let dqr = two * (-z * dr[0][1] + y * dr[0][2] + z * dr[1][0] - x * dr[1][2] - y * dr[2][0]
+        + x * dr[2][1]);
+    let dqx = two * (y * dr[0][1] + z * dr[0][2] + y * dr[1][0] - r * dr[1][2] + z * dr[2][0]
+        + r * dr[2][1])
+        - four * x * (dr[1][1] + dr[2][2]);
+    let dqy = two * (x * dr[0][1] + r * dr[0][2] + x * dr[1][0] + z * dr[1][2] - r * dr[2][0]
+        + z * dr[2][1])
+        - four * y * (dr[0][0] + dr[2][2]);
+    let dqz = two * (-r * dr[0][1] + x * dr[0][2] + r * dr[1][0] + y * dr[1][2] + x * dr[2][0]
+        + y * dr[2][1])
+        - four * z * (dr[0][0] + dr[1][1]);
+    out[7] = dqr;
+    out[8] = dqx;
+    out[9] = dqy;
+    out[10] = dqz;
+}
