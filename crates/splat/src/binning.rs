@@ -29,18 +29,21 @@ pub struct Bins {
     pub pairs: usize,
 }
 
-/// Visible Gaussian indices sorted front to back (ties by index).
-pub fn depth_order<T: Real>(proj: &Projected<T>) -> Vec<u32> {
-    let mut order: Vec<u32> = (0..proj.radius.len() as u32)
-        .filter(|&i| proj.radius[i as usize] > 0)
+/// Visible Gaussians sorted front to back (ties by index), with their tile rectangles.
+pub fn depth_order<T: Real>(proj: &Projected<T>) -> Vec<(u32, [u16; 4])> {
+    // Depths of visible Gaussians are finite and > 0.2, so their f64 bit patterns sort like the
+    // values; the index makes every key unique, so an unstable sort gives the stable order.
+    let mut keys: Vec<(u64, u32)> = proj
+        .radius
+        .iter()
+        .enumerate()
+        .filter(|(_, &r)| r > 0)
+        .map(|(i, _)| (proj.g[i].depth.as_f64().to_bits(), i as u32))
         .collect();
-    // Keys are unique (index breaks ties), so an unstable sort gives the stable order.
-    order.par_sort_unstable_by(|&a, &b| {
-        proj.depth[a as usize]
-            .total_cmp(&proj.depth[b as usize])
-            .then(a.cmp(&b))
-    });
-    order
+    keys.par_sort_unstable();
+    keys.into_iter()
+        .map(|(_, i)| (i, proj.rect[i as usize]))
+        .collect()
 }
 
 pub fn bin<T: Real>(proj: &Projected<T>, grid_x: usize, grid_y: usize) -> Bins {
@@ -50,14 +53,14 @@ pub fn bin<T: Real>(proj: &Projected<T>, grid_x: usize, grid_y: usize) -> Bins {
         .map(|ty| {
             let ty = ty as u16;
             let mut counts = vec![0u32; grid_x + 1];
-            let mut members = Vec::new();
-            for &g in &order {
-                let [x0, x1, y0, y1] = proj.rect[g as usize];
-                if y0 <= ty && ty < y1 {
-                    members.push(g);
-                    for c in &mut counts[x0 as usize + 1..x1 as usize + 1] {
-                        *c += 1;
-                    }
+            let members: Vec<(u32, [u16; 4])> = order
+                .iter()
+                .filter(|(_, r)| r[2] <= ty && ty < r[3])
+                .copied()
+                .collect();
+            for (_, r) in &members {
+                for c in &mut counts[r[0] as usize + 1..r[1] as usize + 1] {
+                    *c += 1;
                 }
             }
             for tx in 0..grid_x {
@@ -65,9 +68,8 @@ pub fn bin<T: Real>(proj: &Projected<T>, grid_x: usize, grid_y: usize) -> Bins {
             }
             let mut cursor = counts.clone();
             let mut ids = vec![0u32; counts[grid_x] as usize];
-            for &g in &members {
-                let [x0, x1, _, _] = proj.rect[g as usize];
-                for c in &mut cursor[x0 as usize..x1 as usize] {
+            for &(g, r) in &members {
+                for c in &mut cursor[r[0] as usize..r[1] as usize] {
                     ids[*c as usize] = g;
                     *c += 1;
                 }

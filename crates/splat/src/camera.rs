@@ -124,7 +124,10 @@ mod tests {
     fn identity_camera_flips_x_and_y() {
         let tm = Camera::look_at_origin_matrix(9.0, 0.0, 0.0);
         let cam = Camera::from_transform_matrix(&tm, 12.0, 512, 512).unwrap();
-        assert_eq!(cam.rot, [[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]);
+        assert_eq!(
+            cam.rot,
+            [[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]
+        );
         assert_eq!(cam.trans, [0.0, 0.0, 9.0]);
         assert_eq!(cam.focal_px(), (3072.0, 3072.0));
         let c = cam.center();

@@ -68,24 +68,40 @@ impl<T: Real> CamK<T> {
     }
 }
 
-/// Projected Gaussians, struct-of-arrays. A culled Gaussian has `radius == 0` and an empty rect.
+/// One projected Gaussian, packed so the rasterizer touches a single cache line per Gaussian.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Splat2D<T> {
+    /// Pixel-space centre.
+    pub mx: T,
+    pub my: T,
+    /// Conic (inverse 2D covariance) entries A, B, C.
+    pub ca: T,
+    pub cb: T,
+    pub cc: T,
+    pub opacity: T,
+    /// Bound on `A dx^2 + 2 B dx dy + C dy^2` inside which alpha can reach 1/255 (slightly
+    /// inflated so rounding never excludes a pixel); negative when the Gaussian can never reach
+    /// 1/255.
+    pub cut: T,
+    pub depth: T,
+    /// Dilated 2D covariance diagonal.
+    pub va: T,
+    pub vc: T,
+}
+
+/// Projected Gaussians. A culled Gaussian has `radius == 0` and an empty rect.
 #[derive(Debug, Clone, Default)]
 pub struct Projected<T> {
-    pub mx: Vec<T>,
-    pub my: Vec<T>,
-    /// Conic (inverse 2D covariance) entries A, B, C.
-    pub ca: Vec<T>,
-    pub cb: Vec<T>,
-    pub cc: Vec<T>,
-    /// Dilated 2D covariance diagonal, used to bound where alpha can reach 1/255.
-    pub va: Vec<T>,
-    pub vc: Vec<T>,
-    pub opacity: Vec<T>,
-    pub depth: Vec<T>,
+    pub g: Vec<Splat2D<T>>,
     pub radius: Vec<u32>,
     /// Tile rectangle [x0, x1) x [y0, y1).
     pub rect: Vec<[u16; 4]>,
 }
+
+/// The alpha >= 1/255 region is inflated by this factor (and [`CUT_PAD`]) before it bounds the
+/// pixels visited, far more than f32 rounding of the conic quadratic can move its edge.
+const CUT_INFLATE: f64 = 1.02;
+const CUT_PAD: f64 = 0.05;
 
 /// Quaternion (r, x, y, z) to the 3x3 matrix of spec section 7, without normalisation.
 #[inline(always)]
@@ -122,7 +138,6 @@ struct Geo<T> {
     sigma: [[T; 3]; 3],
     /// Clamped tan ratios and whether each was clamped (+1 / -1) or not (0).
     clamp: [i8; 2],
-    j: [[T; 3]; 2],
     /// P = J W (2x3)
     p: [[T; 3]; 2],
     a: T,
@@ -194,7 +209,6 @@ fn geometry<T: Real>(cam: &CamK<T>, mean: [T; 3], scale: [T; 3], quat: [T; 4]) -
         m,
         sigma,
         clamp,
-        j,
         p,
         a,
         b,
@@ -221,46 +235,27 @@ pub const GEOM: usize = 11;
 /// Projects all Gaussians in parallel. Results depend only on each Gaussian, so they are
 /// identical for any thread count.
 pub fn project<T: Real>(cam: &CamK<T>, geom: &[T]) -> Projected<T> {
-    let n = geom.len() / GEOM;
-    let rows: Vec<_> = geom
+    let rows: Vec<(Splat2D<T>, u32, [u16; 4])> = geom
         .par_chunks(GEOM)
-        .with_min_len(1024)
+        .with_min_len(2048)
         .map(|g| project_one(cam, g))
         .collect();
     let mut out = Projected {
-        mx: Vec::with_capacity(n),
-        my: Vec::with_capacity(n),
-        ca: Vec::with_capacity(n),
-        cb: Vec::with_capacity(n),
-        cc: Vec::with_capacity(n),
-        va: Vec::with_capacity(n),
-        vc: Vec::with_capacity(n),
-        opacity: Vec::with_capacity(n),
-        depth: Vec::with_capacity(n),
-        radius: Vec::with_capacity(n),
-        rect: Vec::with_capacity(n),
+        g: Vec::with_capacity(rows.len()),
+        radius: Vec::with_capacity(rows.len()),
+        rect: Vec::with_capacity(rows.len()),
     };
-    for r in rows {
-        out.mx.push(r.0[0]);
-        out.my.push(r.0[1]);
-        out.ca.push(r.0[2]);
-        out.cb.push(r.0[3]);
-        out.cc.push(r.0[4]);
-        out.va.push(r.0[5]);
-        out.vc.push(r.0[6]);
-        out.opacity.push(r.0[7]);
-        out.depth.push(r.0[8]);
-        out.radius.push(r.1);
-        out.rect.push(r.2);
+    for (g, r, rect) in rows {
+        out.g.push(g);
+        out.radius.push(r);
+        out.rect.push(rect);
     }
     out
 }
 
-type Row<T> = ([T; 9], u32, [u16; 4]);
-
 #[inline(always)]
-fn project_one<T: Real>(cam: &CamK<T>, g: &[T]) -> Row<T> {
-    let culled = ([T::ZERO; 9], 0, [0; 4]);
+fn project_one<T: Real>(cam: &CamK<T>, g: &[T]) -> (Splat2D<T>, u32, [u16; 4]) {
+    let culled = (Splat2D::default(), 0, [0; 4]);
     let mean = [g[0], g[1], g[2]];
     let opacity = g[3];
     let scale = [g[4], g[5], g[6]];
@@ -293,8 +288,26 @@ fn project_one<T: Real>(cam: &CamK<T>, g: &[T]) -> Row<T> {
     if (x1 - x0) * (y1 - y0) == 0 {
         return culled;
     }
+    // alpha >= 1/255 needs o exp(power) >= 1/255, i.e. d^T Q d <= 2 ln(255 o).
+    let o = opacity.as_f64();
+    let cut = if opacity < T::lit(crate::raster::MIN_ALPHA) {
+        -1.0
+    } else {
+        2.0 * (255.0 * o).ln().max(0.0) * CUT_INFLATE + CUT_PAD
+    };
     (
-        [mx, my, ca, cb, cc, a, c, opacity, geo.t[2]],
+        Splat2D {
+            mx,
+            my,
+            ca,
+            cb,
+            cc,
+            opacity,
+            cut: T::lit(cut),
+            depth: geo.t[2],
+            va: a,
+            vc: c,
+        },
         radius as u32,
         [x0 as u16, x1 as u16, y0 as u16, y1 as u16],
     )
@@ -359,7 +372,9 @@ pub fn project_backward_one<T: Real>(cam: &CamK<T>, g: &[T], d: &Grad2D<T>, out:
     for i in 0..2 {
         for k in 0..3 {
             dp[i][k] = two
-                * (gp[i][0] * geo.sigma[0][k] + gp[i][1] * geo.sigma[1][k] + gp[i][2] * geo.sigma[2][k]);
+                * (gp[i][0] * geo.sigma[0][k]
+                    + gp[i][1] * geo.sigma[1][k]
+                    + gp[i][2] * geo.sigma[2][k]);
         }
     }
     // P = J W  =>  dL/dJ = dL/dP W^T
@@ -392,7 +407,6 @@ pub fn project_backward_one<T: Real>(cam: &CamK<T>, g: &[T], d: &Grad2D<T>, out:
             }
         }
     }
-    let _ = &geo.j;
     // Mean in pixels: px = fx x/z + const.
     dt[0] += d.mx * cam.fx / tz;
     dt[1] += d.my * cam.fy / tz;
@@ -420,16 +434,22 @@ pub fn project_backward_one<T: Real>(cam: &CamK<T>, g: &[T], d: &Grad2D<T>, out:
     let [r, x, y, z] = quat;
     let four = T::lit(4.0);
     // Derivatives of each rotation entry w.r.t. (r, x, y, z).
-    let dqr = two * (-z * dr[0][1] + y * dr[0][2] + z * dr[1][0] - x * dr[1][2] - y * dr[2][0]
-        + x * dr[2][1]);
-    let dqx = two * (y * dr[0][1] + z * dr[0][2] + y * dr[1][0] - r * dr[1][2] + z * dr[2][0]
-        + r * dr[2][1])
+    let dqr = two
+        * (-z * dr[0][1] + y * dr[0][2] + z * dr[1][0] - x * dr[1][2] - y * dr[2][0]
+            + x * dr[2][1]);
+    let dqx = two
+        * (y * dr[0][1] + z * dr[0][2] + y * dr[1][0] - r * dr[1][2] + z * dr[2][0] + r * dr[2][1])
         - four * x * (dr[1][1] + dr[2][2]);
-    let dqy = two * (x * dr[0][1] + r * dr[0][2] + x * dr[1][0] + z * dr[1][2] - r * dr[2][0]
-        + z * dr[2][1])
+    let dqy = two
+        * (x * dr[0][1] + r * dr[0][2] + x * dr[1][0] + z * dr[1][2] - r * dr[2][0] + z * dr[2][1])
         - four * y * (dr[0][0] + dr[2][2]);
-    let dqz = two * (-r * dr[0][1] + x * dr[0][2] + r * dr[1][0] + y * dr[1][2] + x * dr[2][0]
-        + y * dr[2][1])
+    let dqz = two
+        * (-r * dr[0][1]
+            + x * dr[0][2]
+            + r * dr[1][0]
+            + y * dr[1][2]
+            + x * dr[2][0]
+            + y * dr[2][1])
         - four * z * (dr[0][0] + dr[1][1]);
     out[7] = dqr;
     out[8] = dqx;

@@ -1,12 +1,14 @@
 //! Per-tile alpha compositing (spec section 7) and its backward.
 //!
 //! Work is split by bands (one row of 16x16 tiles). Within a tile the loop runs over the tile's
-//! Gaussians front to back and, for each, over only the pixels where its alpha can reach 1/255
-//! (a conservative ellipse bounding box); the per-pixel arithmetic and its order are exactly the
-//! release's, so results do not depend on the thread count.
+//! Gaussians front to back and, for each, over only the pixel rows and column spans where its
+//! alpha can reach 1/255 (a slightly inflated ellipse, solved per row). Each row's powers and
+//! alphas are computed for all 16 lanes at once, branch-free so the compiler vectorises them;
+//! the per-pixel decisions and the accumulation order are exactly the release's, so results
+//! do not depend on the thread count or on the SIMD path taken.
 
 use crate::binning::Bins;
-use crate::project::{Projected, TILE};
+use crate::project::{Projected, Splat2D, TILE};
 use crate::real::Real;
 use rayon::prelude::*;
 
@@ -16,12 +18,10 @@ pub const MAX_ALPHA: f64 = 0.99;
 pub const MIN_ALPHA: f64 = 1.0 / 255.0;
 /// A pixel stops before a Gaussian would take its transmittance below this.
 pub const MIN_TRANSMITTANCE: f64 = 1e-4;
-/// Extra pixels around the analytic alpha >= 1/255 ellipse box, so that rounding can never
-/// exclude a pixel the release would evaluate (extra pixels only cost time).
-const BOX_MARGIN_PX: f64 = 1.0;
-const BOX_MARGIN_REL: f64 = 1.02;
 /// Gaussian slots per reduction chunk in the backward.
 const REDUCE_CHUNK: usize = 4096;
+/// Screen-space gradient entries per Gaussian: mean x, mean y, conic A, B, C, opacity.
+pub const SCREEN: usize = 6;
 
 /// Per-pixel results of the forward that the backward and callers need.
 #[derive(Debug, Clone, Default)]
@@ -30,91 +30,6 @@ pub struct PixelState<T> {
     pub final_t: Vec<T>,
     /// One past the tile-list position of the last Gaussian added to each pixel, [H*W].
     pub n_contrib: Vec<u32>,
-}
-
-#[derive(Clone, Copy)]
-struct G<T> {
-    mx: T,
-    my: T,
-    ca: T,
-    cb: T,
-    cc: T,
-    o: T,
-}
-
-impl<T: Real> G<T> {
-    #[inline(always)]
-    fn load(p: &Projected<T>, g: usize) -> Self {
-        Self {
-            mx: p.mx[g],
-            my: p.my[g],
-            ca: p.ca[g],
-            cb: p.cb[g],
-            cc: p.cc[g],
-            o: p.opacity[g],
-        }
-    }
-
-    /// (power, exp(power), alpha) at pixel centre (px, py), or None where the release skips.
-    #[inline(always)]
-    fn eval(&self, px: T, py: T) -> Option<(T, T, T, T, T)> {
-        let dx = self.mx - px;
-        let dy = self.my - py;
-        let power = -T::lit(0.5) * (self.ca * dx * dx + self.cc * dy * dy) - self.cb * dx * dy;
-        if power > T::ZERO {
-            return None;
-        }
-        let gexp = power.exp();
-        let alpha = (self.o * gexp).fmin(T::lit(MAX_ALPHA));
-        if alpha < T::lit(MIN_ALPHA) {
-            return None;
-        }
-        Some((dx, dy, gexp, alpha, power))
-    }
-}
-
-/// Pixel box (inclusive, tile-local) where Gaussian `g` can reach alpha >= 1/255, or None.
-#[inline(always)]
-fn pixel_box<T: Real>(
-    p: &Projected<T>,
-    g: usize,
-    x0: usize,
-    y0: usize,
-    tw: usize,
-    th: usize,
-) -> Option<(usize, usize, usize, usize)> {
-    let o = p.opacity[g];
-    if o < T::lit(MIN_ALPHA) {
-        return None;
-    }
-    // alpha >= 1/255 needs 0.5 d^T Q d <= ln(255 o); that ellipse's half-extents are
-    // sqrt(2 ln(255 o) cov_xx) and sqrt(2 ln(255 o) cov_yy).
-    let tc = (255.0 * o.as_f64()).ln().max(0.0);
-    let ex = (2.0 * tc * p.va[g].as_f64()).sqrt() * BOX_MARGIN_REL + BOX_MARGIN_PX;
-    let ey = (2.0 * tc * p.vc[g].as_f64()).sqrt() * BOX_MARGIN_REL + BOX_MARGIN_PX;
-    let (mx, my) = (p.mx[g].as_f64(), p.my[g].as_f64());
-    let lo_x = (mx - ex - x0 as f64).ceil().max(0.0);
-    let hi_x = (mx + ex - x0 as f64).floor().min(tw as f64 - 1.0);
-    let lo_y = (my - ey - y0 as f64).ceil().max(0.0);
-    let hi_y = (my + ey - y0 as f64).floor().min(th as f64 - 1.0);
-    // NaN-safe: any comparison with NaN fails and skips.
-    if lo_x <= hi_x && lo_y <= hi_y {
-        Some((lo_x as usize, hi_x as usize, lo_y as usize, hi_y as usize))
-    } else {
-        None
-    }
-}
-
-/// Splits `[C, H, W]` planes into per-band row slices so bands can be written in parallel.
-fn band_slices<T>(data: &mut [T], planes: usize, height: usize, width: usize) -> Vec<Vec<&mut [T]>> {
-    let bands = height.div_ceil(TILE);
-    let mut out: Vec<Vec<&mut [T]>> = (0..bands).map(|_| Vec::with_capacity(planes)).collect();
-    for plane in data.chunks_mut(height * width) {
-        for (b, rows) in plane.chunks_mut(TILE * width).enumerate() {
-            out[b].push(rows);
-        }
-    }
-    out
 }
 
 pub struct Frame<'a, T> {
@@ -127,231 +42,294 @@ pub struct Frame<'a, T> {
     pub height: usize,
 }
 
+/// Tile-local inclusive row range where the Gaussian can reach alpha >= 1/255.
+#[inline(always)]
+fn row_range<T: Real>(s: &Splat2D<T>, y0: usize, th: usize) -> Option<(usize, usize)> {
+    let cut = s.cut.as_f64();
+    if !(cut > 0.0) {
+        return None;
+    }
+    // The ellipse d^T Q d <= cut reaches sqrt(cut * cov_yy) above and below its centre.
+    let ey = (cut * s.vc.as_f64()).sqrt();
+    let my = s.my.as_f64() - y0 as f64;
+    let lo = (my - ey).ceil().max(0.0);
+    let hi = (my + ey).floor().min(th as f64 - 1.0);
+    (lo <= hi).then_some((lo as usize, hi as usize))
+}
+
+/// Tile-local inclusive column span of one row (vertical offset `dy = my - py`).
+#[inline(always)]
+fn col_range<T: Real>(s: &Splat2D<T>, dy: f64, x0: usize, tw: usize) -> Option<(usize, usize)> {
+    let (a, b, c, cut) = (s.ca.as_f64(), s.cb.as_f64(), s.cc.as_f64(), s.cut.as_f64());
+    let mx = s.mx.as_f64() - x0 as f64;
+    let (lo, hi) = if a > 0.0 {
+        // A dx^2 + 2 B dy dx + C dy^2 <= cut, solved for dx = mx - px.
+        let bdy = b * dy;
+        let disc = bdy * bdy - a * (c * dy * dy - cut);
+        if !(disc >= 0.0) {
+            return None;
+        }
+        let sq = disc.sqrt();
+        let (dlo, dhi) = ((-bdy - sq) / a, (-bdy + sq) / a);
+        (
+            (mx - dhi).ceil().max(0.0),
+            (mx - dlo).floor().min(tw as f64 - 1.0),
+        )
+    } else {
+        (0.0, tw as f64 - 1.0)
+    };
+    (lo <= hi).then_some((lo as usize, hi as usize))
+}
+
+/// Power, exp(power) and alpha of one Gaussian for the 16 pixels of a tile row.
+struct Lanes<T> {
+    power: [T; TILE],
+    gexp: [T; TILE],
+    alpha: [T; TILE],
+}
+
+/// 0, 1, ..., 15 as floats: pixel x = tile origin + lane offset (exact for integers).
+#[inline(always)]
+fn lane_offsets<T: Real>() -> [T; TILE] {
+    std::array::from_fn(|i| T::lit(i as f64))
+}
+
+#[inline(always)]
+fn eval_row<T: Real>(s: &Splat2D<T>, lane_x: &[T; TILE], x0: usize, py: T, out: &mut Lanes<T>) {
+    let dy = s.my - py;
+    let cdy = s.cc * dy * dy;
+    let bdy = s.cb * dy;
+    let base = T::lit(x0 as f64);
+    let half = T::lit(0.5);
+    let max_alpha = T::lit(MAX_ALPHA);
+    for i in 0..TILE {
+        let dx = s.mx - (base + lane_x[i]);
+        let power = -(half * (s.ca * dx * dx + cdy)) - bdy * dx;
+        let g = power.fexp();
+        out.power[i] = power;
+        out.gexp[i] = g;
+        out.alpha[i] = (s.opacity * g).fmin(max_alpha);
+    }
+}
+
+/// Splits `[C, H, W]` planes into per-band row slices so bands can be written in parallel.
+fn band_slices<T>(
+    data: &mut [T],
+    planes: usize,
+    height: usize,
+    width: usize,
+) -> Vec<Vec<&mut [T]>> {
+    let bands = height.div_ceil(TILE);
+    let mut out: Vec<Vec<&mut [T]>> = (0..bands).map(|_| Vec::with_capacity(planes)).collect();
+    if height * width == 0 {
+        return out;
+    }
+    for plane in data.chunks_mut(height * width) {
+        for (b, rows) in plane.chunks_mut(TILE * width).enumerate() {
+            out[b].push(rows);
+        }
+    }
+    out
+}
+
+/// True when the band kernels can run compiled for AVX2 (wider vectors for the lane loops and
+/// the channel accumulation). Rust never contracts a*b+c into an FMA, so both paths round
+/// identically and results are bit-identical either way.
+#[inline]
+fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn forward_band_avx2<T: Real>(f: &Frame<T>, ty: usize, out: BandOut<T>) {
+    forward_band(f, ty, out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn backward_band_avx2<T: Real>(
+    f: &Frame<T>,
+    state: &PixelState<T>,
+    grad: &[T],
+    ty: usize,
+    slot: &mut [u32],
+) -> BandGrads<T> {
+    backward_band(f, state, grad, ty, slot)
+}
+
+struct BandOut<'a, T> {
+    image: Vec<&'a mut [T]>,
+    final_t: &'a mut [T],
+    n_contrib: &'a mut [u32],
+}
+
 /// Composites one image; returns `[C, H, W]` and the per-pixel state.
 pub fn forward<T: Real>(f: &Frame<T>) -> (Vec<T>, PixelState<T>) {
     let (w, h, c) = (f.width, f.height, f.channels);
     let mut image = vec![T::ZERO; c * h * w];
     let mut final_t = vec![T::ZERO; h * w];
     let mut n_contrib = vec![0u32; h * w];
-    let img_bands = band_slices(&mut image, c, h, w);
-    let t_bands = final_t.chunks_mut(TILE * w);
-    let n_bands = n_contrib.chunks_mut(TILE * w);
-    img_bands
-        .into_par_iter()
-        .zip(t_bands.collect::<Vec<_>>())
-        .zip(n_bands.collect::<Vec<_>>())
-        .enumerate()
-        .for_each(|(ty, ((mut img, tb), nb))| {
-            let band = &f.bins.bands[ty];
-            let y0 = ty * TILE;
-            let th = TILE.min(h - y0);
-            let mut acc = vec![T::ZERO; TILE * TILE * c];
-            let mut tr = vec![T::ONE; TILE * TILE];
-            let mut last = vec![0u32; TILE * TILE];
-            let mut done = vec![false; TILE * TILE];
-            for tx in 0..w.div_ceil(TILE) {
-                let x0 = tx * TILE;
-                let tw = TILE.min(w - x0);
-                let npix = tw * th;
-                acc[..npix * c].iter_mut().for_each(|v| *v = T::ZERO);
-                tr[..npix].iter_mut().for_each(|v| *v = T::ONE);
-                last[..npix].iter_mut().for_each(|v| *v = 0);
-                done[..npix].iter_mut().for_each(|v| *v = false);
-                let mut ndone = 0usize;
-                for (k, &gi) in band.tile(tx).iter().enumerate() {
-                    if ndone == npix {
-                        break;
-                    }
-                    let g = gi as usize;
-                    let Some((bx0, bx1, by0, by1)) = pixel_box(f.proj, g, x0, y0, tw, th) else {
-                        continue;
-                    };
-                    let gs = G::load(f.proj, g);
-                    let feat = &f.features[g * c..(g + 1) * c];
-                    for ly in by0..=by1 {
-                        let py = T::lit((y0 + ly) as f64);
-                        for lx in bx0..=bx1 {
-                            let p = ly * tw + lx;
-                            if done[p] {
-                                continue;
-                            }
-                            let px = T::lit((x0 + lx) as f64);
-                            let Some((_, _, _, alpha, _)) = gs.eval(px, py) else {
-                                continue;
-                            };
-                            let t = tr[p];
-                            let test_t = t * (T::ONE - alpha);
-                            if test_t < T::lit(MIN_TRANSMITTANCE) {
-                                done[p] = true;
-                                ndone += 1;
-                                continue;
-                            }
-                            let wgt = alpha * t;
-                            for (a, &fv) in acc[p * c..(p + 1) * c].iter_mut().zip(feat) {
-                                *a += fv * wgt;
-                            }
-                            tr[p] = test_t;
-                            last[p] = k as u32 + 1;
-                        }
-                    }
+    let outs: Vec<BandOut<T>> = band_slices(&mut image, c, h, w)
+        .into_iter()
+        .zip(final_t.chunks_mut(TILE * w))
+        .zip(n_contrib.chunks_mut(TILE * w))
+        .map(|((image, final_t), n_contrib)| BandOut {
+            image,
+            final_t,
+            n_contrib,
+        })
+        .collect();
+    let avx2 = has_avx2();
+    outs.into_par_iter().enumerate().for_each(|(ty, out)| {
+        #[cfg(target_arch = "x86_64")]
+        if avx2 {
+            // SAFETY: the CPU supports AVX2 (checked by has_avx2).
+            return unsafe { forward_band_avx2(f, ty, out) };
+        }
+        forward_band(f, ty, out)
+    });
+    (image, PixelState { final_t, n_contrib })
+}
+
+#[inline(always)]
+fn forward_band<T: Real>(f: &Frame<T>, ty: usize, mut out: BandOut<T>) {
+    let band = &f.bins.bands[ty];
+    let lane_x = lane_offsets::<T>();
+    let (w, h, c) = (f.width, f.height, f.channels);
+    let y0 = ty * TILE;
+    let th = TILE.min(h - y0);
+    let mut acc = vec![T::ZERO; TILE * TILE * c];
+    let mut done = [false; TILE * TILE];
+    let mut lanes = Lanes {
+        power: [T::ZERO; TILE],
+        gexp: [T::ZERO; TILE],
+        alpha: [T::ZERO; TILE],
+    };
+    let min_alpha = T::lit(MIN_ALPHA);
+    let min_t = T::lit(MIN_TRANSMITTANCE);
+    for tx in 0..w.div_ceil(TILE) {
+        let x0 = tx * TILE;
+        let tw = TILE.min(w - x0);
+        let npix = TILE * th;
+        acc.iter_mut().for_each(|v| *v = T::ZERO);
+        let mut tr = [T::ONE; TILE * TILE];
+        let mut last = [0u32; TILE * TILE];
+        // Columns beyond the image edge count as done from the start.
+        for (p, d) in done.iter_mut().enumerate() {
+            *d = p % TILE >= tw;
+        }
+        let edge_mask: u32 = !((1u32 << tw) - 1) & 0xFFFF;
+        let mut row_done = [edge_mask; TILE];
+        let mut ndone = (TILE - tw) * th;
+        for (k, &gi) in band.tile(tx).iter().enumerate() {
+            if ndone == npix {
+                break;
+            }
+            let g = gi as usize;
+            let s = &f.proj.g[g];
+            let Some((ry0, ry1)) = row_range(s, y0, th) else {
+                continue;
+            };
+            let feat = &f.features[g * c..(g + 1) * c];
+            for ly in ry0..=ry1 {
+                let py = T::lit((y0 + ly) as f64);
+                let Some((cx0, cx1)) = col_range(s, (s.my - py).as_f64(), x0, tw) else {
+                    continue;
+                };
+                let span = ((1u32 << (cx1 + 1)) - 1) & !((1u32 << cx0) - 1);
+                if row_done[ly] & span == span {
+                    continue;
                 }
-                for ly in 0..th {
-                    for lx in 0..tw {
-                        let p = ly * tw + lx;
-                        let o = ly * w + x0 + lx;
-                        tb[o] = tr[p];
-                        nb[o] = last[p];
-                        for (ch, plane) in img.iter_mut().enumerate() {
-                            plane[o] = acc[p * c + ch] + tr[p] * f.background[ch];
-                        }
+                eval_row(s, &lane_x, x0, py, &mut lanes);
+                for lx in cx0..=cx1 {
+                    let p = ly * TILE + lx;
+                    if done[p] || lanes.power[lx] > T::ZERO {
+                        continue;
                     }
+                    let alpha = lanes.alpha[lx];
+                    if alpha < min_alpha {
+                        continue;
+                    }
+                    let t = tr[p];
+                    let test_t = t * (T::ONE - alpha);
+                    if test_t < min_t {
+                        done[p] = true;
+                        row_done[ly] |= 1 << lx;
+                        ndone += 1;
+                        continue;
+                    }
+                    T::axpy(&mut acc[p * c..(p + 1) * c], feat, alpha * t);
+                    tr[p] = test_t;
+                    last[p] = k as u32 + 1;
                 }
             }
-        });
-    (image, PixelState { final_t, n_contrib })
+        }
+        for ly in 0..th {
+            for lx in 0..tw {
+                let p = ly * TILE + lx;
+                let o = ly * w + x0 + lx;
+                out.final_t[o] = tr[p];
+                out.n_contrib[o] = last[p];
+                for (ch, plane) in out.image.iter_mut().enumerate() {
+                    plane[o] = acc[p * c + ch] + tr[p] * f.background[ch];
+                }
+            }
+        }
+    }
 }
 
 /// Gradients of one image w.r.t. the per-Gaussian screen-space quantities.
 pub struct Grads2D<T> {
     /// [N, C]
     pub features: Vec<T>,
-    /// [N, 6]: mean x, mean y, conic A, B, C, opacity.
+    /// [N, SCREEN]: mean x, mean y, conic A, B, C, opacity.
     pub screen: Vec<T>,
     /// [C]
     pub background: Vec<T>,
 }
 
-const SCREEN: usize = 6;
-
 struct BandGrads<T> {
     ids: Vec<u32>,
-    /// Per slot: [features (C) | screen (6)].
+    /// Per slot: [features (C) | screen (SCREEN)].
     vals: Vec<T>,
     background: Vec<T>,
 }
 
 /// Backward of [`forward`] given `grad` = dL/dimage `[C, H, W]`.
+///
+/// Each band accumulates into its own compact buffer (one slot per Gaussian it touches), and
+/// the buffers are summed per Gaussian in band order, so gradients are bit-identical for any
+/// thread count.
 pub fn backward<T: Real>(f: &Frame<T>, state: &PixelState<T>, grad: &[T], n: usize) -> Grads2D<T> {
-    let (w, h, c) = (f.width, f.height, f.channels);
+    let c = f.channels;
     let stride = c + SCREEN;
-    let plane = h * w;
+    let avx2 = has_avx2();
     let band_grads: Vec<BandGrads<T>> = (0..f.bins.bands.len())
         .into_par_iter()
         .map_init(
             || vec![0u32; n],
             |slot, ty| {
-                let band = &f.bins.bands[ty];
-                let mut ids = band.ids.clone();
-                ids.sort_unstable();
-                ids.dedup();
-                for (s, &g) in ids.iter().enumerate() {
-                    slot[g as usize] = s as u32;
+                #[cfg(target_arch = "x86_64")]
+                if avx2 {
+                    // SAFETY: the CPU supports AVX2 (checked by has_avx2).
+                    return unsafe { backward_band_avx2(f, state, grad, ty, slot) };
                 }
-                let mut vals = vec![T::ZERO; ids.len() * stride];
-                let mut bg = vec![T::ZERO; c];
-                let y0 = ty * TILE;
-                let th = TILE.min(h - y0);
-                let mut dpix = vec![T::ZERO; TILE * TILE * c];
-                let mut rec = vec![T::ZERO; TILE * TILE * c];
-                let mut tr = vec![T::ZERO; TILE * TILE];
-                let mut bg_dot = vec![T::ZERO; TILE * TILE];
-                let mut ncon = vec![0u32; TILE * TILE];
-                let mut local = vec![T::ZERO; stride];
-                for tx in 0..w.div_ceil(TILE) {
-                    let x0 = tx * TILE;
-                    let tw = TILE.min(w - x0);
-                    let mut kmax = 0u32;
-                    for ly in 0..th {
-                        for lx in 0..tw {
-                            let p = ly * tw + lx;
-                            let o = (y0 + ly) * w + x0 + lx;
-                            let mut dot = T::ZERO;
-                            for ch in 0..c {
-                                let d = grad[ch * plane + o];
-                                dpix[p * c + ch] = d;
-                                dot += d * f.background[ch];
-                                bg[ch] += d * state.final_t[o];
-                            }
-                            bg_dot[p] = dot;
-                            tr[p] = state.final_t[o];
-                            ncon[p] = state.n_contrib[o];
-                            kmax = kmax.max(ncon[p]);
-                        }
-                    }
-                    rec[..tw * th * c].iter_mut().for_each(|v| *v = T::ZERO);
-                    let list = band.tile(tx);
-                    for k in (0..kmax as usize).rev() {
-                        let g = list[k] as usize;
-                        let Some((bx0, bx1, by0, by1)) = pixel_box(f.proj, g, x0, y0, tw, th)
-                        else {
-                            continue;
-                        };
-                        let gs = G::load(f.proj, g);
-                        let feat = &f.features[g * c..(g + 1) * c];
-                        local.iter_mut().for_each(|v| *v = T::ZERO);
-                        let mut touched = false;
-                        for ly in by0..=by1 {
-                            let py = T::lit((y0 + ly) as f64);
-                            for lx in bx0..=bx1 {
-                                let p = ly * tw + lx;
-                                if k as u32 >= ncon[p] {
-                                    continue;
-                                }
-                                let px = T::lit((x0 + lx) as f64);
-                                let Some((dx, dy, gexp, alpha, _)) = gs.eval(px, py) else {
-                                    continue;
-                                };
-                                touched = true;
-                                let one_m = T::ONE - alpha;
-                                let t = tr[p] / one_m;
-                                tr[p] = t;
-                                let wgt = alpha * t;
-                                let dp = &dpix[p * c..(p + 1) * c];
-                                let rc = &mut rec[p * c..(p + 1) * c];
-                                let mut dalpha = T::ZERO;
-                                for ch in 0..c {
-                                    local[ch] += wgt * dp[ch];
-                                    dalpha += (feat[ch] - rc[ch]) * dp[ch];
-                                    rc[ch] = alpha * feat[ch] + one_m * rc[ch];
-                                }
-                                let o_final = state.final_t[(y0 + ly) * w + x0 + lx];
-                                dalpha = dalpha * t - o_final / one_m * bg_dot[p];
-                                // alpha = min(0.99, o G): no gradient where the clamp is active.
-                                if gs.o * gexp < T::lit(MAX_ALPHA) {
-                                    let dg = gs.o * dalpha;
-                                    local[c + 5] += gexp * dalpha;
-                                    let dpow = gexp * dg;
-                                    // power = -0.5 (A dx^2 + C dy^2) - B dx dy, d = mean - pixel
-                                    local[c] -= dpow * (gs.ca * dx + gs.cb * dy);
-                                    local[c + 1] -= dpow * (gs.cc * dy + gs.cb * dx);
-                                    local[c + 2] -= T::lit(0.5) * dpow * dx * dx;
-                                    local[c + 3] -= dpow * dx * dy;
-                                    local[c + 4] -= T::lit(0.5) * dpow * dy * dy;
-                                }
-                            }
-                        }
-                        if touched {
-                            let s = slot[g] as usize * stride;
-                            for (v, l) in vals[s..s + stride].iter_mut().zip(&local) {
-                                *v += *l;
-                            }
-                        }
-                    }
-                }
-                BandGrads {
-                    ids,
-                    vals,
-                    background: bg,
-                }
+                backward_band(f, state, grad, ty, slot)
             },
         )
         .collect();
-
-    // Deterministic reduction: each Gaussian sums its band contributions in band order.
     let mut features = vec![T::ZERO; n * c];
     let mut screen = vec![T::ZERO; n * SCREEN];
     features
-        .par_chunks_mut(REDUCE_CHUNK * c.max(1))
+        .par_chunks_mut(REDUCE_CHUNK * c)
         .zip(screen.par_chunks_mut(REDUCE_CHUNK * SCREEN))
         .enumerate()
         .for_each(|(chunk, (fo, so))| {
@@ -360,14 +338,17 @@ pub fn backward<T: Real>(f: &Frame<T>, state: &PixelState<T>, grad: &[T], n: usi
             for bg in &band_grads {
                 let start = bg.ids.partition_point(|&g| g < lo);
                 let end = bg.ids.partition_point(|&g| g < hi);
-                for (s, &g) in bg.ids[start..end].iter().enumerate() {
-                    let s = (start + s) * stride;
+                for (i, &g) in bg.ids[start..end].iter().enumerate() {
+                    let s = (start + i) * stride;
                     let l = (g - lo) as usize;
-                    for ch in 0..c {
-                        fo[l * c + ch] += bg.vals[s + ch];
+                    for (o, v) in fo[l * c..(l + 1) * c].iter_mut().zip(&bg.vals[s..s + c]) {
+                        *o += *v;
                     }
-                    for q in 0..SCREEN {
-                        so[l * SCREEN + q] += bg.vals[s + c + q];
+                    for (o, v) in so[l * SCREEN..(l + 1) * SCREEN]
+                        .iter_mut()
+                        .zip(&bg.vals[s + c..s + stride])
+                    {
+                        *o += *v;
                     }
                 }
             }
@@ -382,5 +363,139 @@ pub fn backward<T: Real>(f: &Frame<T>, state: &PixelState<T>, grad: &[T], n: usi
         features,
         screen,
         background,
+    }
+}
+
+#[inline(always)]
+fn backward_band<T: Real>(
+    f: &Frame<T>,
+    state: &PixelState<T>,
+    grad: &[T],
+    ty: usize,
+    slot: &mut [u32],
+) -> BandGrads<T> {
+    let (w, h, c) = (f.width, f.height, f.channels);
+    let stride = c + SCREEN;
+    let plane = h * w;
+    let band = &f.bins.bands[ty];
+    let lane_x = lane_offsets::<T>();
+    let mut ids = band.ids.clone();
+    ids.sort_unstable();
+    ids.dedup();
+    for (s, &g) in ids.iter().enumerate() {
+        slot[g as usize] = s as u32;
+    }
+    let mut vals = vec![T::ZERO; ids.len() * stride];
+    let mut bg = vec![T::ZERO; c];
+    let y0 = ty * TILE;
+    let th = TILE.min(h - y0);
+    let mut dpix = vec![T::ZERO; TILE * TILE * c];
+    let mut rec = vec![T::ZERO; TILE * TILE * c];
+    let mut tr = [T::ZERO; TILE * TILE];
+    let mut t_final = [T::ZERO; TILE * TILE];
+    let mut bg_dot = [T::ZERO; TILE * TILE];
+    let mut local = vec![T::ZERO; stride];
+    let mut lanes = Lanes {
+        power: [T::ZERO; TILE],
+        gexp: [T::ZERO; TILE],
+        alpha: [T::ZERO; TILE],
+    };
+    let min_alpha = T::lit(MIN_ALPHA);
+    let max_alpha = T::lit(MAX_ALPHA);
+    let half = T::lit(0.5);
+    for tx in 0..w.div_ceil(TILE) {
+        let x0 = tx * TILE;
+        let tw = TILE.min(w - x0);
+        let mut kmax = 0u32;
+        let mut ncon = [0u32; TILE * TILE];
+        let mut row_max = [0u32; TILE];
+        for ly in 0..th {
+            for lx in 0..tw {
+                let p = ly * TILE + lx;
+                let o = (y0 + ly) * w + x0 + lx;
+                let mut dot = T::ZERO;
+                for ch in 0..c {
+                    let d = grad[ch * plane + o];
+                    dpix[p * c + ch] = d;
+                    dot += d * f.background[ch];
+                    bg[ch] += d * state.final_t[o];
+                }
+                bg_dot[p] = dot;
+                tr[p] = state.final_t[o];
+                t_final[p] = state.final_t[o];
+                ncon[p] = state.n_contrib[o];
+                row_max[ly] = row_max[ly].max(ncon[p]);
+                kmax = kmax.max(ncon[p]);
+            }
+        }
+        rec.iter_mut().for_each(|v| *v = T::ZERO);
+        let list = band.tile(tx);
+        for k in (0..kmax as usize).rev() {
+            let g = list[k] as usize;
+            let s = &f.proj.g[g];
+            let Some((ry0, ry1)) = row_range(s, y0, th) else {
+                continue;
+            };
+            let feat = &f.features[g * c..(g + 1) * c];
+            local.iter_mut().for_each(|v| *v = T::ZERO);
+            let mut touched = false;
+            for ly in ry0..=ry1 {
+                if k as u32 >= row_max[ly] {
+                    continue;
+                }
+                let py = T::lit((y0 + ly) as f64);
+                let dy = s.my - py;
+                let Some((cx0, cx1)) = col_range(s, dy.as_f64(), x0, tw) else {
+                    continue;
+                };
+                eval_row(s, &lane_x, x0, py, &mut lanes);
+                for lx in cx0..=cx1 {
+                    let p = ly * TILE + lx;
+                    if k as u32 >= ncon[p] || lanes.power[lx] > T::ZERO {
+                        continue;
+                    }
+                    let alpha = lanes.alpha[lx];
+                    if alpha < min_alpha {
+                        continue;
+                    }
+                    touched = true;
+                    let gexp = lanes.gexp[lx];
+                    let dx = s.mx - T::lit((x0 + lx) as f64);
+                    let one_m = T::ONE - alpha;
+                    // Transmittance in front of this Gaussian, recovered back to front.
+                    let t = tr[p] / one_m;
+                    tr[p] = t;
+                    let wgt = alpha * t;
+                    let dp = &dpix[p * c..(p + 1) * c];
+                    let rc = &mut rec[p * c..(p + 1) * c];
+                    // rec = colour composited behind this Gaussian, per unit transmittance.
+                    let mut dalpha =
+                        T::blend_back(&mut local[..c], dp, feat, rc, wgt, alpha, one_m);
+                    dalpha = dalpha * t - t_final[p] / one_m * bg_dot[p];
+                    // alpha = min(0.99, o G): no gradient where the clamp is active.
+                    if s.opacity * gexp < max_alpha {
+                        local[c + 5] += gexp * dalpha;
+                        let dpow = gexp * s.opacity * dalpha;
+                        // power = -0.5 (A dx^2 + C dy^2) - B dx dy, with d = mean - pixel.
+                        local[c] -= dpow * (s.ca * dx + s.cb * dy);
+                        local[c + 1] -= dpow * (s.cc * dy + s.cb * dx);
+                        local[c + 2] -= half * dpow * dx * dx;
+                        local[c + 3] -= dpow * dx * dy;
+                        local[c + 4] -= half * dpow * dy * dy;
+                    }
+                }
+            }
+            if touched {
+                let at = slot[g] as usize * stride;
+                for (v, l) in vals[at..at + stride].iter_mut().zip(&local) {
+                    *v += *l;
+                }
+            }
+        }
+    }
+    BandGrads {
+        ids,
+        vals,
+        background: bg,
     }
 }

@@ -207,7 +207,10 @@ impl GaussianScene {
             .enumerate()
         {
             if !x.is_finite() {
-                return Err(scene_err(path, format!("non-finite value at flat index {i}")));
+                return Err(scene_err(
+                    path,
+                    format!("non-finite value at flat index {i}"),
+                ));
             }
         }
         Ok(s)
@@ -222,10 +225,12 @@ impl GaussianScene {
         header.push_str(PLY_MARKER);
         header.push('\n');
         header.push_str(&format!("element vertex {n}\n"));
-        let mut props: Vec<String> = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-            .iter()
-            .map(|s| s.to_string())
-            .collect();
+        let mut props: Vec<String> = [
+            "x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
         props.push("opacity".into());
         props.extend((0..3).map(|i| format!("scale_{i}")));
         props.extend((0..4).map(|i| format!("rot_{i}")));
@@ -247,7 +252,11 @@ impl GaussianScene {
             }
             let o = (self.opacities[i] as f64).clamp(1e-7, 1.0 - 1e-7);
             row.push((o / (1.0 - o)).ln() as f32);
-            row.extend(self.scales[i * 3..i * 3 + 3].iter().map(|s| s.max(1e-30).ln()));
+            row.extend(
+                self.scales[i * 3..i * 3 + 3]
+                    .iter()
+                    .map(|s| s.max(1e-30).ln()),
+            );
             row.extend_from_slice(&self.rotations[i * 4..i * 4 + 4]);
             row.extend_from_slice(&self.features[i * c..(i + 1) * c]);
             for v in row {

@@ -297,7 +297,10 @@ pub fn splat(g: &Gaussians, background: &Tensor, cameras: &[Camera]) -> Result<S
         });
     }
     let background = match background.rank() {
-        1 => background.unsqueeze(0)?.broadcast_as((b, c))?.contiguous()?,
+        1 => background
+            .unsqueeze(0)?
+            .broadcast_as((b, c))?
+            .contiguous()?,
         2 => background.clone(),
         _ => {
             return Err(SplatError::Shape {
@@ -381,8 +384,14 @@ fn aux<T: Real>(
     (b, h, w): (usize, usize, usize),
     dtype: DType,
 ) -> Result<(Tensor, Tensor, Vec<usize>)> {
-    let t: Vec<T> = st.iter().flat_map(|s| s.pix.final_t.iter().copied()).collect();
-    let r: Vec<u32> = st.iter().flat_map(|s| s.proj.radius.iter().copied()).collect();
+    let t: Vec<T> = st
+        .iter()
+        .flat_map(|s| s.pix.final_t.iter().copied())
+        .collect();
+    let r: Vec<u32> = st
+        .iter()
+        .flat_map(|s| s.proj.radius.iter().copied())
+        .collect();
     let n = r.len() / b.max(1);
     Ok((
         Tensor::from_vec(t, (b, h, w), &Device::Cpu)?.to_dtype(dtype)?,

@@ -53,14 +53,15 @@ fn scene() -> Scene {
         s.feats.extend((0..c).map(|_| rng.range(-0.5, 1.5)));
         s.opac.push(rng.range(0.2, 0.6));
         let base = rng.range(0.04, 0.12);
-        s.scales.extend([
-            base * rng.range(0.6, 1.4),
-            base * rng.range(0.6, 1.4),
-            base,
-        ]);
+        s.scales
+            .extend([base * rng.range(0.6, 1.4), base * rng.range(0.6, 1.4), base]);
         let q: Vec<f64> = (0..4).map(|_| rng.normal()).collect();
         let norm = q.iter().map(|x| x * x).sum::<f64>().sqrt();
-        let qs = if i == 1 { 2e-3 } else { 1.0 / norm * rng.range(0.7, 1.3) };
+        let qs = if i == 1 {
+            2e-3
+        } else {
+            1.0 / norm * rng.range(0.7, 1.3)
+        };
         s.rots.extend(q.iter().map(|x| x * qs));
     }
     // Very anisotropic.
@@ -123,13 +124,26 @@ fn gradients_match_finite_differences() {
     let v: Vec<f64> = (0..3)
         .map(|i| r[i][0] * p[0] + r[i][1] * p[1] + r[i][2] * p[2] + tr[i])
         .collect();
-    assert!((v[0] / v[2]).abs() > 1.3 / 12.0, "view {v:?} is not clamped");
+    assert!(
+        (v[0] / v[2]).abs() > 1.3 / 12.0,
+        "view {v:?} is not clamped"
+    );
     let radii: Vec<u32> = out.radii.flatten_all().unwrap().to_vec1().unwrap();
-    assert!(radii.iter().all(|&r| r > 0), "all test Gaussians must be visible: {radii:?}");
+    assert!(
+        radii.iter().all(|&r| r > 0),
+        "all test Gaussians must be visible: {radii:?}"
+    );
     let g = t(&s.grad_img, out.image.dims());
     let l = (out.image * g).unwrap().sum_all().unwrap();
     let grads = l.backward().unwrap();
-    let names = ["means", "features", "opacities", "scales", "rotations", "background"];
+    let names = [
+        "means",
+        "features",
+        "opacities",
+        "scales",
+        "rotations",
+        "background",
+    ];
     let mut checked = 0;
     let mut worst = 0.0f64;
     for (k, var) in vars.iter().enumerate() {
