@@ -1,10 +1,126 @@
 //! `gagavatar flame ...`: FLAME utilities (synthetic asset, mesh export).
 
+use std::fmt::Write as _;
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use candle_core::{DType, Device};
 use clap::Subcommand;
+use gagavatar_flame::{
+    synthesize, FlameAsset, FlameConfig, FlameModel, LoadOptions, TrackedFrame, FLAME_SCALE,
+};
 
 #[derive(Debug, Subcommand)]
-pub enum FlameCmd {}
+pub enum FlameCmd {
+    /// Write the deterministic synthetic FLAME-format asset (release layout and shapes).
+    #[command(after_help = "Example:\n  gagavatar flame synth -o flame.safetensors --seed 7")]
+    Synth {
+        /// Output safetensors file (keys `flame_model.*`, `lmk_embeddings.*`).
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Seed for the blendshapes and pose correctives (the geometry is fixed).
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
+    /// Pose a FLAME asset with a tracked-frame record and export the mesh as OBJ.
+    #[command(
+        after_help = "The record is JSON with `shapecode`, `expcode`, `posecode`, `eyecode` \
+(shorter codes are zero-padded, longer ones rejected) and optional `transform_matrix`, `bbox`. \
+The OBJ holds the x5-scaled vertices in asset order and 1-based faces.\n\n\
+Example:\n  gagavatar flame mesh --flame FLAME_with_eye.pt --params frame.json -o head.obj"
+    )]
+    Mesh {
+        /// FLAME asset: the release's `.pt` or a `.safetensors` with the same keys.
+        #[arg(long)]
+        flame: PathBuf,
+        /// Tracked-frame record (JSON).
+        #[arg(long)]
+        params: PathBuf,
+        /// Output OBJ file.
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+}
 
 pub fn run(cmd: FlameCmd) -> anyhow::Result<()> {
-    match cmd {}
+    match cmd {
+        FlameCmd::Synth { output, seed } => {
+            let asset = synthesize(seed);
+            let bytes = asset.to_safetensors_bytes()?;
+            write_atomic(&output, &bytes)?;
+            eprintln!(
+                "wrote {} ({} vertices, {} faces, seed {seed})",
+                output.display(),
+                asset.n_vertices,
+                asset.n_faces()
+            );
+            Ok(())
+        }
+        FlameCmd::Mesh {
+            flame,
+            params,
+            output,
+        } => {
+            let asset = FlameAsset::load(&flame, &LoadOptions::default())?;
+            let record = TrackedFrame::from_json_file(&params)?;
+            let config = FlameConfig {
+                n_shape: asset.layout.shape,
+                n_exp: asset.layout.expression,
+                scale: FLAME_SCALE,
+            };
+            let model = FlameModel::new(&asset, config, &Device::Cpu, DType::F32)?;
+            let out = model.forward(&record.params(&model)?)?;
+            let verts = out.vertices.squeeze(0)?.to_vec2::<f32>()?;
+            let obj = obj_text(&verts, &asset.faces);
+            write_atomic(&output, obj.as_bytes())?;
+            eprintln!(
+                "wrote {} ({} vertices, {} faces)",
+                output.display(),
+                verts.len(),
+                asset.n_faces()
+            );
+            Ok(())
+        }
+    }
+}
+
+fn obj_text(verts: &[Vec<f32>], faces: &[[u32; 3]]) -> String {
+    let mut s = String::with_capacity(verts.len() * 40 + faces.len() * 24);
+    s.push_str("# gagavatar flame mesh (FLAME vertices x5)\n");
+    for v in verts {
+        let _ = writeln!(s, "v {} {} {}", v[0], v[1], v[2]);
+    }
+    for f in faces {
+        let _ = writeln!(s, "f {} {} {}", f[0] + 1, f[1] + 1, f[2] + 1);
+    }
+    s
+}
+
+/// Writes beside the target and renames, so a crash or a full disk never leaves a truncated file
+/// under the requested name.
+fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let name = path
+        .file_name()
+        .with_context(|| format!("{}: not a file path", path.display()))?;
+    let tmp = dir.join(format!(
+        ".{}.tmp-{}",
+        name.to_string_lossy(),
+        std::process::id()
+    ));
+    let result = (|| -> std::io::Result<()> {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if let Err(e) = result {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e).with_context(|| format!("cannot write {}", path.display()));
+    }
+    Ok(())
 }
