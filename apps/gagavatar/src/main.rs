@@ -1,12 +1,17 @@
 //! The `gagavatar` command line. Each subcommand lives in its own `cmd_*.rs` and stays thin:
 //! parsing, progress and file handling here, the work in the library crates.
 
+mod cmd_bench;
 mod cmd_flame;
 
 use clap::{Parser, Subcommand};
 
 #[derive(Debug, Parser)]
-#[command(name = "gagavatar", version, about = "GAGAvatar in Rust: one-shot animatable Gaussian head avatars")]
+#[command(
+    name = "gagavatar",
+    version,
+    about = "GAGAvatar in Rust: one-shot animatable Gaussian head avatars"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -17,12 +22,16 @@ enum Command {
     /// FLAME head model utilities.
     #[command(subcommand)]
     Flame(cmd_flame::FlameCmd),
+    /// Benchmarks of the hot paths on this machine.
+    #[command(subcommand)]
+    Bench(cmd_bench::BenchCmd),
 }
 
 fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Flame(cmd) => cmd_flame::run(cmd),
+        Command::Bench(cmd) => cmd_bench::run(cmd),
     };
     if let Err(err) = result {
         eprintln!("error: {err:#}");
