@@ -3,6 +3,7 @@
 
 mod cmd_bench;
 mod cmd_flame;
+mod cmd_splat;
 
 use clap::{Parser, Subcommand};
 
@@ -19,6 +20,10 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Render a Gaussian scene (safetensors or 3DGS .ply) with a release-style camera.
+    Splat(cmd_splat::SplatArgs),
+    /// Write the avatar-like demo scene (two lifted planes + head points) and its camera.
+    ExampleScene(cmd_splat::ExampleSceneArgs),
     /// FLAME head model utilities.
     #[command(subcommand)]
     Flame(cmd_flame::FlameCmd),
@@ -30,6 +35,8 @@ enum Command {
 fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
+        Command::Splat(args) => cmd_splat::run_splat(args),
+        Command::ExampleScene(args) => cmd_splat::run_example_scene(args),
         Command::Flame(cmd) => cmd_flame::run(cmd),
         Command::Bench(cmd) => cmd_bench::run(cmd),
     };

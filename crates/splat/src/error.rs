@@ -28,13 +28,15 @@ pub enum SplatError {
     Batch(String),
     #[error("unsupported dtype {0:?}: splatting runs in f32 or f64")]
     DType(candle_core::DType),
+    #[error("all inputs must share one dtype: means is {0:?} but another input is {1:?}")]
+    MixedDType(candle_core::DType, candle_core::DType),
     #[error("splatting runs on the CPU only for now (got a {0:?} tensor)")]
     Device(candle_core::DeviceLocation),
     #[error("scene file {path}: {msg}")]
     Scene { path: String, msg: String },
     #[error(transparent)]
     Candle(#[from] candle_core::Error),
-    #[error("i/o error on {path}: {source}")]
+    #[error("i/o error on {path}")]
     Io {
         path: String,
         #[source]

@@ -296,19 +296,12 @@ pub fn splat(g: &Gaussians, background: &Tensor, cameras: &[Camera]) -> Result<S
             expected: "at least one channel".into(),
         });
     }
-    let background = match background.rank() {
-        1 => background
+    let background = match background.dims() {
+        [k] if *k == c => background
             .unsqueeze(0)?
             .broadcast_as((b, c))?
             .contiguous()?,
-        2 => background.clone(),
-        _ => {
-            return Err(SplatError::Shape {
-                name: "background",
-                got: background.dims().to_vec(),
-                expected: format!("[{c}] or [{b}, {c}]"),
-            })
-        }
+        _ => background.clone(),
     };
     if background.dims() != [b, c] {
         return Err(SplatError::Shape {
@@ -335,7 +328,7 @@ pub fn splat(g: &Gaussians, background: &Tensor, cameras: &[Camera]) -> Result<S
     }
     for t in [&features, &opac, &scales, &rots, &background] {
         if t.dtype() != dtype {
-            return Err(SplatError::DType(t.dtype()));
+            return Err(SplatError::MixedDType(dtype, t.dtype()));
         }
         if !matches!(t.device(), Device::Cpu) {
             return Err(SplatError::Device(t.device().location()));

@@ -66,8 +66,15 @@ pub fn avatar_scene(
     };
     let push = |s: &mut GaussianScene, rng: &mut Rng, p: [f64; 3], quat_scale: f64| {
         s.means.extend(p.iter().map(|&v| v as f32));
-        for _ in 0..channels {
-            s.features.push(rng.range(0.0, 1.0) as f32);
+        // A smooth colour pattern in the first three channels so renders are readable; the
+        // remaining channels are noise like untrained latent features.
+        for ch in 0..channels {
+            let v = if ch < 3 {
+                0.5 + 0.45 * (4.0 * p[0] + 2.1 * ch as f64 + 3.0 * p[1] * p[1] + 5.0 * p[2]).sin()
+            } else {
+                rng.range(0.0, 1.0)
+            };
+            s.features.push(v as f32);
         }
         s.opacities.push(rng.range(0.2, 0.95) as f32);
         for _ in 0..3 {
