@@ -8,7 +8,8 @@ use anyhow::Context;
 use candle_core::{DType, Device};
 use clap::Subcommand;
 use gagavatar_flame::{
-    synthesize, FlameAsset, FlameConfig, FlameModel, LoadOptions, TrackedFrame, FLAME_SCALE,
+    synthesize, BasisLayout, FlameAsset, FlameConfig, FlameModel, LoadOptions, TrackedFrame,
+    FLAME_SCALE,
 };
 
 #[derive(Debug, Subcommand)]
@@ -28,6 +29,7 @@ pub enum FlameCmd {
         after_help = "The record is JSON with `shapecode`, `expcode`, `posecode`, `eyecode` \
 (shorter codes are zero-padded, longer ones rejected) and optional `transform_matrix`, `bbox`. \
 The OBJ holds the x5-scaled vertices in asset order and 1-based faces.\n\n\
+A reduced asset (fewer than 400 shapedirs columns) needs its split: --n-shape N --n-exp M.\n\n\
 Example:\n  gagavatar flame mesh --flame FLAME_with_eye.pt --params frame.json -o head.obj"
     )]
     Mesh {
@@ -40,6 +42,12 @@ Example:\n  gagavatar flame mesh --flame FLAME_with_eye.pt --params frame.json -
         /// Output OBJ file.
         #[arg(short, long)]
         output: PathBuf,
+        /// Shape (identity) columns at the start of the asset's `shapedirs`.
+        #[arg(long, default_value_t = 300)]
+        n_shape: usize,
+        /// Expression columns after them; n-shape + n-exp must equal the column count.
+        #[arg(long, default_value_t = 100)]
+        n_exp: usize,
     },
 }
 
@@ -61,8 +69,18 @@ pub fn run(cmd: FlameCmd) -> anyhow::Result<()> {
             flame,
             params,
             output,
+            n_shape,
+            n_exp,
         } => {
-            let asset = FlameAsset::load(&flame, &LoadOptions::default())?;
+            let options = LoadOptions {
+                layout: Some(BasisLayout {
+                    shape: n_shape,
+                    expression: n_exp,
+                }),
+            };
+            let asset = FlameAsset::load(&flame, &options).with_context(|| {
+                format!("loading {} as {n_shape} shape + {n_exp} expression components (--n-shape, --n-exp)", flame.display())
+            })?;
             let record = TrackedFrame::from_json_file(&params)?;
             let config = FlameConfig {
                 n_shape: asset.layout.shape,
@@ -123,4 +141,40 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
         return Err(e).with_context(|| format!("cannot write {}", path.display()));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mesh_exports_a_reduced_asset_given_its_split() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../crates/flame/tests/golden");
+        let dir = std::env::temp_dir().join(format!("gagavatar-flame-mesh-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let params = dir.join("frame.json");
+        std::fs::write(
+            &params,
+            r#"{"shapecode": [0.5, -0.2], "expcode": [0.3], "posecode": [0, 0, 0, 0.2, 0, 0],
+                "eyecode": [0, 0.1, 0, 0, 0.1, 0]}"#,
+        )
+        .unwrap();
+        let mesh = |n_shape, n_exp, name: &str| {
+            run(FlameCmd::Mesh {
+                flame: root.join("tiny_flame.pt"),
+                params: params.clone(),
+                output: dir.join(name),
+                n_shape,
+                n_exp,
+            })
+        };
+        // The defaults describe the release's 400 columns, which this 10-column file lacks.
+        let err = mesh(300, 100, "default.obj").unwrap_err();
+        assert!(format!("{err:#}").contains("--n-shape"), "{err:#}");
+        mesh(6, 4, "tiny.obj").unwrap();
+        let obj = std::fs::read_to_string(dir.join("tiny.obj")).unwrap();
+        assert_eq!(obj.lines().filter(|l| l.starts_with("v ")).count(), 40);
+        assert_eq!(obj.lines().filter(|l| l.starts_with("f ")).count(), 60);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

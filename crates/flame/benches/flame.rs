@@ -1,5 +1,7 @@
-//! FLAME forward on the CPU (f32, full 300 + 100 components): one frame, and 100 frames batched.
-//! Thread count follows candle's defaults (all cores; set RAYON_NUM_THREADS to pin it).
+//! FLAME forward on the CPU (f32, full 300 + 100 components): one frame, and 100 frames batched,
+//! through the full forward and through the driving path (identity cached once per shape code,
+//! `forward_with_identity` per frame). Thread count follows candle's defaults (all cores; set
+//! RAYON_NUM_THREADS to pin it).
 
 use candle_core::{DType, Device, Tensor};
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
@@ -27,6 +29,21 @@ fn bench(c: &mut Criterion) {
             b.iter(|| model.forward(&p).unwrap())
         });
     }
+    // Driving: one source shape for every frame, so its identity part is built once, outside
+    // the timed loop.
+    let identity = model.identity(&params(&model, 1).shape).unwrap();
+    for batch in [1usize, 100] {
+        let p = params(&model, batch);
+        g.throughput(Throughput::Elements(batch as u64));
+        g.bench_function(format!("cached_identity_batch_{batch}"), |b| {
+            b.iter(|| {
+                model
+                    .forward_with_identity(&identity, &p.expression, &p.pose, &p.eye)
+                    .unwrap()
+            })
+        });
+    }
+    g.throughput(Throughput::Elements(1));
     let p = params(&model, 1);
     g.bench_function("batch_1_with_landmarks", |b| {
         b.iter(|| {

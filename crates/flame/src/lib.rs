@@ -9,12 +9,13 @@ pub mod lbs;
 mod pth;
 pub mod record;
 pub mod rodrigues;
+pub mod skinning;
 pub mod synth;
 
 pub use asset::{BasisLayout, FlameAsset, LoadOptions};
 pub use error::{FlameError, Result};
 pub use landmarks::{project_point, project_points, LandmarkEmbedding, Landmarks};
-pub use lbs::{FlameConfig, FlameModel, FlameOutput, FlameParams, FLAME_SCALE};
+pub use lbs::{FlameConfig, FlameIdentity, FlameModel, FlameOutput, FlameParams, FLAME_SCALE};
 pub use record::TrackedFrame;
 pub use rodrigues::rodrigues;
 pub use synth::synthesize;

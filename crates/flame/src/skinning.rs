@@ -13,16 +13,16 @@ use candle_core::{
     CpuStorage, CustomOp2, DType, Layout, Result as CandleResult, Shape, Tensor, WithDType,
 };
 use rayon::prelude::*;
+use std::sync::Arc;
 
 use crate::asset::NUM_JOINTS;
 
 /// Values per joint transform: a row-major 3x4 `[R | t]`.
 pub const TRANSFORM_LEN: usize = 12;
 const JOINT_BLOCK: usize = NUM_JOINTS * TRANSFORM_LEN;
-/// Vertices per parallel task. Below a few tasks' worth (one frame), threading costs more than it
-/// saves, so small batches run on the calling thread.
-const CHUNK_VERTICES: usize = 2048;
-const PARALLEL_MIN_VERTICES: usize = 4 * CHUNK_VERTICES;
+/// Below this many vertices in the batch (one or two frames), threading costs more than it saves,
+/// so small batches run on the calling thread.
+const PARALLEL_MIN_VERTICES: usize = 8192;
 
 /// `vertices[b, v] = scale * (sum_j w[v, j] A[b, j]) [v_posed[b, v]; 1]`.
 ///
@@ -62,6 +62,27 @@ impl Skinning {
     }
 }
 
+/// The op as candle wants it for `apply_op2_arc`, shared so calls and model clones don't copy the
+/// weights.
+#[derive(Clone)]
+pub struct SharedSkinning(Arc<Box<dyn CustomOp2 + Send + Sync>>);
+
+impl SharedSkinning {
+    pub fn new(op: Skinning) -> Self {
+        Self(Arc::new(Box::new(op)))
+    }
+
+    pub fn op(&self) -> Arc<Box<dyn CustomOp2 + Send + Sync>> {
+        self.0.clone()
+    }
+}
+
+impl std::fmt::Debug for SharedSkinning {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.0.name())
+    }
+}
+
 fn contiguous<'a, T>(data: &'a [T], layout: &Layout, what: &str) -> CandleResult<&'a [T]> {
     match layout.contiguous_offsets() {
         Some((start, end)) => Ok(&data[start..end]),
@@ -71,10 +92,9 @@ fn contiguous<'a, T>(data: &'a [T], layout: &Layout, what: &str) -> CandleResult
 
 /// The blended 3x4 transform of one vertex.
 #[inline(always)]
-fn blend<T: WithDType>(w: &[T], a: &[T]) -> [T; TRANSFORM_LEN] {
+fn blend<T: WithDType>(w: &[T], a: &[T; JOINT_BLOCK]) -> [T; TRANSFORM_LEN] {
     let mut m = [T::from_f64(0.0); TRANSFORM_LEN];
-    for (j, &wj) in w.iter().enumerate().take(NUM_JOINTS) {
-        let aj = &a[j * TRANSFORM_LEN..(j + 1) * TRANSFORM_LEN];
+    for (aj, &wj) in a.chunks_exact(TRANSFORM_LEN).zip(w) {
         for (mk, &ak) in m.iter_mut().zip(aj) {
             *mk += wj * ak;
         }
@@ -82,26 +102,40 @@ fn blend<T: WithDType>(w: &[T], a: &[T]) -> [T; TRANSFORM_LEN] {
     m
 }
 
-/// Skins vertex rows `first..first + out.len() / 3` of the flattened `[B * V]` batch.
-fn forward_rows<T: WithDType>(
-    out: &mut [T],
-    first: usize,
-    v: &[T],
-    a: &[T],
-    w: &[T],
-    nv: usize,
-    scale: T,
-) {
-    for (i, o) in out.chunks_exact_mut(3).enumerate() {
-        let row = first + i;
-        let (b, vi) = (row / nv, row % nv);
-        let m = blend(
-            &w[vi * NUM_JOINTS..(vi + 1) * NUM_JOINTS],
-            &a[b * JOINT_BLOCK..(b + 1) * JOINT_BLOCK],
-        );
-        let p = &v[row * 3..row * 3 + 3];
-        for (c, oc) in o.iter_mut().enumerate() {
-            let r = &m[c * 4..c * 4 + 4];
+fn frame_transforms<T: WithDType>(a: &[T], b: usize) -> &[T; JOINT_BLOCK] {
+    // `batch` checked the length, so the slice always has the block's size.
+    a[b * JOINT_BLOCK..(b + 1) * JOINT_BLOCK]
+        .try_into()
+        .unwrap_or_else(|_| unreachable!("transform block of a checked batch"))
+}
+
+/// Skins one frame: `out` and `v` are its `[V, 3]` slices.
+///
+/// Most vertices hang on one or two of the five joints, so zero weights are skipped: for finite
+/// transforms that is exact (adding `0 * a` never changes the sum). A frame with a non-finite
+/// transform takes the dense loop, so NaN and infinity spread exactly as in the matrix form.
+fn forward_frame<T: WithDType>(out: &mut [T], v: &[T], a: &[T; JOINT_BLOCK], w: &[T], scale: T) {
+    let zero = T::from_f64(0.0);
+    let sparse = a.iter().all(|x| x.to_f64().is_finite());
+    for ((o, p), wv) in out
+        .chunks_exact_mut(3)
+        .zip(v.chunks_exact(3))
+        .zip(w.chunks_exact(NUM_JOINTS))
+    {
+        let m = if sparse {
+            let mut m = [zero; TRANSFORM_LEN];
+            for (aj, &wj) in a.chunks_exact(TRANSFORM_LEN).zip(wv) {
+                if wj != zero {
+                    for (mk, &ak) in m.iter_mut().zip(aj) {
+                        *mk += wj * ak;
+                    }
+                }
+            }
+            m
+        } else {
+            blend(wv, a)
+        };
+        for (oc, r) in o.iter_mut().zip(m.chunks_exact(4)) {
             *oc = (r[0] * p[0] + r[1] * p[1] + r[2] * p[2] + r[3]) * scale;
         }
     }
@@ -110,13 +144,21 @@ fn forward_rows<T: WithDType>(
 fn forward<T: WithDType>(v: &[T], a: &[T], w: &[T], nv: usize, scale: f64) -> Vec<T> {
     let scale = T::from_f64(scale);
     let mut out = vec![T::from_f64(0.0); v.len()];
-    let rows = v.len() / 3;
-    if rows < PARALLEL_MIN_VERTICES {
-        forward_rows(&mut out, 0, v, a, w, nv, scale);
+    let per = nv * 3;
+    let run = |(b, o): (usize, &mut [T])| {
+        forward_frame(
+            o,
+            &v[b * per..(b + 1) * per],
+            frame_transforms(a, b),
+            w,
+            scale,
+        )
+    };
+    if v.len() / 3 < PARALLEL_MIN_VERTICES {
+        out.chunks_exact_mut(per).enumerate().for_each(run);
     } else {
-        out.par_chunks_mut(CHUNK_VERTICES * 3)
-            .enumerate()
-            .for_each(|(c, o)| forward_rows(o, c * CHUNK_VERTICES, v, a, w, nv, scale));
+        // One task per frame: frames are large enough (5023 vertices) to amortise scheduling.
+        out.par_chunks_exact_mut(per).enumerate().for_each(run);
     }
     out
 }
@@ -128,7 +170,7 @@ fn backward_frame<T: WithDType>(
     grad_v: &mut [T],
     grad_a: &mut [T],
     v: &[T],
-    a: &[T],
+    a: &[T; JOINT_BLOCK],
     g: &[T],
     w: &[T],
     nv: usize,
@@ -138,7 +180,11 @@ fn backward_frame<T: WithDType>(
         let wv = &w[vi * NUM_JOINTS..(vi + 1) * NUM_JOINTS];
         let m = blend(wv, a);
         let p = &v[vi * 3..vi * 3 + 3];
-        let gs = [g[vi * 3] * scale, g[vi * 3 + 1] * scale, g[vi * 3 + 2] * scale];
+        let gs = [
+            g[vi * 3] * scale,
+            g[vi * 3 + 1] * scale,
+            g[vi * 3 + 2] * scale,
+        ];
         for k in 0..3 {
             grad_v[vi * 3 + k] = m[k] * gs[0] + m[4 + k] * gs[1] + m[8 + k] * gs[2];
         }
@@ -177,7 +223,7 @@ fn backward<T: WithDType>(
             gv,
             ga,
             &v[fi * per..(fi + 1) * per],
-            &a[fi * JOINT_BLOCK..(fi + 1) * JOINT_BLOCK],
+            frame_transforms(a, fi),
             &g[fi * per..(fi + 1) * per],
             w,
             nv,
@@ -216,22 +262,24 @@ impl CustomOp2 for Skinning {
         let out_shape = l1.shape().clone();
         match (s1, s2) {
             (CpuStorage::F32(v), CpuStorage::F32(a)) => {
-                let (v, a) = (contiguous(v, l1, "v_posed")?, contiguous(a, l2, "transforms")?);
+                let (v, a) = (
+                    contiguous(v, l1, "v_posed")?,
+                    contiguous(a, l2, "transforms")?,
+                );
                 self.batch(v.len(), a.len())?;
                 let out = forward(v, a, &self.weights_f32, nv, self.scale);
                 Ok((CpuStorage::F32(out), out_shape))
             }
             (CpuStorage::F64(v), CpuStorage::F64(a)) => {
-                let (v, a) = (contiguous(v, l1, "v_posed")?, contiguous(a, l2, "transforms")?);
+                let (v, a) = (
+                    contiguous(v, l1, "v_posed")?,
+                    contiguous(a, l2, "transforms")?,
+                );
                 self.batch(v.len(), a.len())?;
                 let out = forward(v, a, &self.weights_f64, nv, self.scale);
                 Ok((CpuStorage::F64(out), out_shape))
             }
-            _ => candle_core::bail!(
-                "skinning: runs on matching f32 or f64 inputs, got {:?} and {:?}",
-                s1.dtype(),
-                s2.dtype()
-            ),
+            _ => candle_core::bail!("skinning: runs on two f32 or two f64 inputs"),
         }
     }
 
@@ -252,7 +300,10 @@ impl CustomOp2 for Skinning {
                 let g = flat(grad)?.to_dtype(DType::F32)?.to_vec1::<f32>()?;
                 self.batch(v.len(), a.len())?;
                 let (gv, ga) = backward(&v, &a, &g, &self.weights_f32, nv, self.scale);
-                (Tensor::from_vec(gv, v_posed.shape(), dev)?, Tensor::from_vec(ga, transforms.shape(), dev)?)
+                (
+                    Tensor::from_vec(gv, v_posed.shape(), dev)?,
+                    Tensor::from_vec(ga, transforms.shape(), dev)?,
+                )
             }
             DType::F64 => {
                 let v = flat(v_posed)?.to_vec1::<f64>()?;
@@ -260,7 +311,10 @@ impl CustomOp2 for Skinning {
                 let g = flat(grad)?.to_dtype(DType::F64)?.to_vec1::<f64>()?;
                 self.batch(v.len(), a.len())?;
                 let (gv, ga) = backward(&v, &a, &g, &self.weights_f64, nv, self.scale);
-                (Tensor::from_vec(gv, v_posed.shape(), dev)?, Tensor::from_vec(ga, transforms.shape(), dev)?)
+                (
+                    Tensor::from_vec(gv, v_posed.shape(), dev)?,
+                    Tensor::from_vec(ga, transforms.shape(), dev)?,
+                )
             }
             dt => candle_core::bail!("skinning: no backward for {dt:?}"),
         };
