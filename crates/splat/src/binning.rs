@@ -48,16 +48,17 @@ pub fn depth_order<T: Real>(proj: &Projected<T>) -> Vec<(u32, [u16; 4])> {
 
 pub fn bin<T: Real>(proj: &Projected<T>, grid_x: usize, grid_y: usize) -> Bins {
     let order = depth_order(proj);
-    let bands: Vec<Band> = (0..grid_y)
+    // Hand each band the Gaussians whose rectangle covers it, keeping depth order.
+    let mut members: Vec<Vec<(u32, [u16; 4])>> = vec![Vec::new(); grid_y];
+    for &(g, r) in &order {
+        for band in &mut members[r[2] as usize..r[3] as usize] {
+            band.push((g, r));
+        }
+    }
+    let bands: Vec<Band> = members
         .into_par_iter()
-        .map(|ty| {
-            let ty = ty as u16;
+        .map(|members| {
             let mut counts = vec![0u32; grid_x + 1];
-            let members: Vec<(u32, [u16; 4])> = order
-                .iter()
-                .filter(|(_, r)| r[2] <= ty && ty < r[3])
-                .copied()
-                .collect();
             for (_, r) in &members {
                 for c in &mut counts[r[0] as usize + 1..r[1] as usize + 1] {
                     *c += 1;

@@ -18,6 +18,8 @@ pub const MAX_ALPHA: f64 = 0.99;
 pub const MIN_ALPHA: f64 = 1.0 / 255.0;
 /// A pixel stops before a Gaussian would take its transmittance below this.
 pub const MIN_TRANSMITTANCE: f64 = 1e-4;
+/// Bit mask of a whole row of tile pixels.
+const FULL_ROW: u32 = (1 << TILE) - 1;
 /// Gaussian slots per reduction chunk in the backward.
 const REDUCE_CHUNK: usize = 4096;
 /// Screen-space gradient entries per Gaussian: mean x, mean y, conic A, B, C, opacity.
@@ -57,30 +59,6 @@ fn row_range<T: Real>(s: &Splat2D<T>, y0: usize, th: usize) -> Option<(usize, us
     (lo <= hi).then_some((lo as usize, hi as usize))
 }
 
-/// Tile-local inclusive column span of one row (vertical offset `dy = my - py`).
-#[inline(always)]
-fn col_range<T: Real>(s: &Splat2D<T>, dy: f64, x0: usize, tw: usize) -> Option<(usize, usize)> {
-    let (a, b, c, cut) = (s.ca.as_f64(), s.cb.as_f64(), s.cc.as_f64(), s.cut.as_f64());
-    let mx = s.mx.as_f64() - x0 as f64;
-    let (lo, hi) = if a > 0.0 {
-        // A dx^2 + 2 B dy dx + C dy^2 <= cut, solved for dx = mx - px.
-        let bdy = b * dy;
-        let disc = bdy * bdy - a * (c * dy * dy - cut);
-        if !(disc >= 0.0) {
-            return None;
-        }
-        let sq = disc.sqrt();
-        let (dlo, dhi) = ((-bdy - sq) / a, (-bdy + sq) / a);
-        (
-            (mx - dhi).ceil().max(0.0),
-            (mx - dlo).floor().min(tw as f64 - 1.0),
-        )
-    } else {
-        (0.0, tw as f64 - 1.0)
-    };
-    (lo <= hi).then_some((lo as usize, hi as usize))
-}
-
 /// Power, exp(power) and alpha of one Gaussian for the 16 pixels of a tile row.
 struct Lanes<T> {
     power: [T; TILE],
@@ -94,8 +72,16 @@ fn lane_offsets<T: Real>() -> [T; TILE] {
     std::array::from_fn(|i| T::lit(i as f64))
 }
 
+/// Fills `out` for one row and returns the bit mask of lanes the release would not skip
+/// (`power <= 0` and `alpha >= 1/255`).
 #[inline(always)]
-fn eval_row<T: Real>(s: &Splat2D<T>, lane_x: &[T; TILE], x0: usize, py: T, out: &mut Lanes<T>) {
+fn eval_row<T: Real>(
+    s: &Splat2D<T>,
+    lane_x: &[T; TILE],
+    x0: usize,
+    py: T,
+    out: &mut Lanes<T>,
+) -> u32 {
     let dy = s.my - py;
     let cdy = s.cc * dy * dy;
     let bdy = s.cb * dy;
@@ -110,6 +96,13 @@ fn eval_row<T: Real>(s: &Splat2D<T>, lane_x: &[T; TILE], x0: usize, py: T, out: 
         out.gexp[i] = g;
         out.alpha[i] = (s.opacity * g).fmin(max_alpha);
     }
+    let min_alpha = T::lit(MIN_ALPHA);
+    let mut mask = 0u32;
+    for i in 0..TILE {
+        let keep = (out.power[i] <= T::ZERO) & (out.alpha[i] >= min_alpha);
+        mask |= (keep as u32) << i;
+    }
+    mask
 }
 
 /// Splits `[C, H, W]` planes into per-band row slices so bands can be written in parallel.
@@ -206,27 +199,28 @@ fn forward_band<T: Real>(f: &Frame<T>, ty: usize, mut out: BandOut<T>) {
     let (w, h, c) = (f.width, f.height, f.channels);
     let y0 = ty * TILE;
     let th = TILE.min(h - y0);
-    let mut acc = vec![T::ZERO; TILE * TILE * c];
-    let mut done = [false; TILE * TILE];
+    // Contributions (pixel, Gaussian, weight) in the order they are composited, then grouped by
+    // pixel so each pixel's channel sums stay in registers (same order per pixel, so the same
+    // rounding as compositing in place).
+    let mut contrib: Vec<(u32, u32, T)> = Vec::new();
+    let mut grouped: Vec<(u32, T)> = Vec::new();
+    let mut acc = vec![T::ZERO; c];
     let mut lanes = Lanes {
         power: [T::ZERO; TILE],
         gexp: [T::ZERO; TILE],
         alpha: [T::ZERO; TILE],
     };
-    let min_alpha = T::lit(MIN_ALPHA);
     let min_t = T::lit(MIN_TRANSMITTANCE);
     for tx in 0..w.div_ceil(TILE) {
         let x0 = tx * TILE;
         let tw = TILE.min(w - x0);
         let npix = TILE * th;
-        acc.iter_mut().for_each(|v| *v = T::ZERO);
+        contrib.clear();
+        let mut counts = [0u32; TILE * TILE + 1];
         let mut tr = [T::ONE; TILE * TILE];
         let mut last = [0u32; TILE * TILE];
         // Columns beyond the image edge count as done from the start.
-        for (p, d) in done.iter_mut().enumerate() {
-            *d = p % TILE >= tw;
-        }
-        let edge_mask: u32 = !((1u32 << tw) - 1) & 0xFFFF;
+        let edge_mask: u32 = !((1u32 << tw) - 1) & FULL_ROW;
         let mut row_done = [edge_mask; TILE];
         let mut ndone = (TILE - tw) * th;
         for (k, &gi) in band.tile(tx).iter().enumerate() {
@@ -238,39 +232,39 @@ fn forward_band<T: Real>(f: &Frame<T>, ty: usize, mut out: BandOut<T>) {
             let Some((ry0, ry1)) = row_range(s, y0, th) else {
                 continue;
             };
-            let feat = &f.features[g * c..(g + 1) * c];
             for ly in ry0..=ry1 {
-                let py = T::lit((y0 + ly) as f64);
-                let Some((cx0, cx1)) = col_range(s, (s.my - py).as_f64(), x0, tw) else {
-                    continue;
-                };
-                let span = ((1u32 << (cx1 + 1)) - 1) & !((1u32 << cx0) - 1);
-                if row_done[ly] & span == span {
+                if row_done[ly] == FULL_ROW {
                     continue;
                 }
-                eval_row(s, &lane_x, x0, py, &mut lanes);
-                for lx in cx0..=cx1 {
+                let py = T::lit((y0 + ly) as f64);
+                let mut mask = eval_row(s, &lane_x, x0, py, &mut lanes) & !row_done[ly];
+                while mask != 0 {
+                    let lx = mask.trailing_zeros() as usize;
+                    mask &= mask - 1;
                     let p = ly * TILE + lx;
-                    if done[p] || lanes.power[lx] > T::ZERO {
-                        continue;
-                    }
                     let alpha = lanes.alpha[lx];
-                    if alpha < min_alpha {
-                        continue;
-                    }
                     let t = tr[p];
                     let test_t = t * (T::ONE - alpha);
                     if test_t < min_t {
-                        done[p] = true;
                         row_done[ly] |= 1 << lx;
                         ndone += 1;
                         continue;
                     }
-                    T::axpy(&mut acc[p * c..(p + 1) * c], feat, alpha * t);
+                    contrib.push((p as u32, gi, alpha * t));
+                    counts[p + 1] += 1;
                     tr[p] = test_t;
                     last[p] = k as u32 + 1;
                 }
             }
+        }
+        for p in 0..TILE * TILE {
+            counts[p + 1] += counts[p];
+        }
+        grouped.resize(contrib.len(), (0, T::ZERO));
+        let mut cursor = counts;
+        for &(p, g, wgt) in &contrib {
+            grouped[cursor[p as usize] as usize] = (g, wgt);
+            cursor[p as usize] += 1;
         }
         for ly in 0..th {
             for lx in 0..tw {
@@ -278,8 +272,10 @@ fn forward_band<T: Real>(f: &Frame<T>, ty: usize, mut out: BandOut<T>) {
                 let o = ly * w + x0 + lx;
                 out.final_t[o] = tr[p];
                 out.n_contrib[o] = last[p];
+                let list = &grouped[counts[p] as usize..counts[p + 1] as usize];
+                T::weighted_sum(list, f.features, &mut acc);
                 for (ch, plane) in out.image.iter_mut().enumerate() {
-                    plane[o] = acc[p * c + ch] + tr[p] * f.background[ch];
+                    plane[o] = acc[ch] + tr[p] * f.background[ch];
                 }
             }
         }
@@ -400,12 +396,12 @@ fn backward_band<T: Real>(
         gexp: [T::ZERO; TILE],
         alpha: [T::ZERO; TILE],
     };
-    let min_alpha = T::lit(MIN_ALPHA);
     let max_alpha = T::lit(MAX_ALPHA);
     let half = T::lit(0.5);
     for tx in 0..w.div_ceil(TILE) {
         let x0 = tx * TILE;
         let tw = TILE.min(w - x0);
+        let cols: u32 = (1u32 << tw) - 1;
         let mut kmax = 0u32;
         let mut ncon = [0u32; TILE * TILE];
         let mut row_max = [0u32; TILE];
@@ -445,19 +441,15 @@ fn backward_band<T: Real>(
                 }
                 let py = T::lit((y0 + ly) as f64);
                 let dy = s.my - py;
-                let Some((cx0, cx1)) = col_range(s, dy.as_f64(), x0, tw) else {
-                    continue;
-                };
-                eval_row(s, &lane_x, x0, py, &mut lanes);
-                for lx in cx0..=cx1 {
+                let mut mask = eval_row(s, &lane_x, x0, py, &mut lanes) & cols;
+                while mask != 0 {
+                    let lx = mask.trailing_zeros() as usize;
+                    mask &= mask - 1;
                     let p = ly * TILE + lx;
-                    if k as u32 >= ncon[p] || lanes.power[lx] > T::ZERO {
+                    if k as u32 >= ncon[p] {
                         continue;
                     }
                     let alpha = lanes.alpha[lx];
-                    if alpha < min_alpha {
-                        continue;
-                    }
                     touched = true;
                     let gexp = lanes.gexp[lx];
                     let dx = s.mx - T::lit((x0 + lx) as f64);

@@ -45,6 +45,32 @@ pub trait Real:
             *a += f * w;
         }
     }
+    /// `acc = sum_i w_i * features[g_i]` in list order, for one pixel (`acc.len()` channels).
+    #[inline(always)]
+    fn weighted_sum(list: &[(u32, Self)], features: &[Self], acc: &mut [Self]) {
+        let c = acc.len();
+        if let Ok(out) = <&mut [Self; 32]>::try_from(&mut *acc) {
+            // Fixed width: the accumulator lives in registers and the loop vectorises.
+            let mut a = [Self::ZERO; 32];
+            for &(g, w) in list {
+                let g = g as usize;
+                if let Ok(f) = <&[Self; 32]>::try_from(&features[g * 32..g * 32 + 32]) {
+                    for i in 0..32 {
+                        a[i] += f[i] * w;
+                    }
+                }
+            }
+            *out = a;
+        } else {
+            acc.iter_mut().for_each(|v| *v = Self::ZERO);
+            for &(g, w) in list {
+                let f = &features[g as usize * c..(g as usize + 1) * c];
+                for (a, &fv) in acc.iter_mut().zip(f) {
+                    *a += fv * w;
+                }
+            }
+        }
+    }
     /// One pixel's step of the compositing backward over the channels: `local += w * dp`,
     /// returns `sum((feat - rec) * dp)` and updates `rec = alpha * feat + one_m * rec`.
     #[inline(always)]
@@ -258,8 +284,9 @@ pub fn exp_f32(x: f32) -> f32 {
     const LN2_LO: f32 = -2.121_944_4e-4;
     // Adding and subtracting 1.5 * 2^23 rounds to the nearest integer without a branch.
     const ROUND: f32 = 12_582_912.0;
-    let x = x.clamp(-87.0, 88.0);
-    let k = (x * LOG2E + ROUND) - ROUND;
+    let x = x.max(-87.0).min(88.0);
+    let shifted = x * LOG2E + ROUND;
+    let k = shifted - ROUND;
     let r = x - k * LN2_HI - k * LN2_LO;
     let mut p = 1.987_569_2e-4_f32;
     p = p * r + 1.398_2e-3;
@@ -268,7 +295,10 @@ pub fn exp_f32(x: f32) -> f32 {
     p = p * r + 1.666_666_5e-1;
     p = p * r + 0.5;
     let e = p * r * r + r + 1.0;
-    let scale = f32::from_bits(((k as i32 + 127) as u32) << 23);
+    // The low mantissa bits of `shifted` hold k itself (offset by ROUND's bit pattern), so the
+    // exponent of 2^k comes from integer arithmetic that vectorises, unlike a float-to-int cast.
+    let kbits = shifted.to_bits().wrapping_sub(ROUND.to_bits());
+    let scale = f32::from_bits(kbits.wrapping_add(127) << 23);
     e * scale
 }
 
