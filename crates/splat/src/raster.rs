@@ -96,13 +96,7 @@ fn eval_row<T: Real>(
         out.gexp[i] = g;
         out.alpha[i] = (s.opacity * g).fmin(max_alpha);
     }
-    let min_alpha = T::lit(MIN_ALPHA);
-    let mut mask = 0u32;
-    for i in 0..TILE {
-        let keep = (out.power[i] <= T::ZERO) & (out.alpha[i] >= min_alpha);
-        mask |= (keep as u32) << i;
-    }
-    mask
+    T::lane_mask(&out.power, &out.alpha, T::lit(MIN_ALPHA))
 }
 
 /// Splits `[C, H, W]` planes into per-band row slices so bands can be written in parallel.
@@ -155,7 +149,7 @@ unsafe fn backward_band_avx2<T: Real>(
     ty: usize,
     slot: &mut [u32],
 ) -> BandGrads<T> {
-    backward_band(f, state, grad, ty, slot)
+    backward_band::<T, true>(f, state, grad, ty, slot)
 }
 
 struct BandOut<'a, T> {
@@ -318,7 +312,7 @@ pub fn backward<T: Real>(f: &Frame<T>, state: &PixelState<T>, grad: &[T], n: usi
                     // SAFETY: the CPU supports AVX2 (checked by has_avx2).
                     return unsafe { backward_band_avx2(f, state, grad, ty, slot) };
                 }
-                backward_band(f, state, grad, ty, slot)
+                backward_band::<T, false>(f, state, grad, ty, slot)
             },
         )
         .collect();
@@ -363,7 +357,7 @@ pub fn backward<T: Real>(f: &Frame<T>, state: &PixelState<T>, grad: &[T], n: usi
 }
 
 #[inline(always)]
-fn backward_band<T: Real>(
+fn backward_band<T: Real, const AVX2: bool>(
     f: &Frame<T>,
     state: &PixelState<T>,
     grad: &[T],
@@ -461,8 +455,14 @@ fn backward_band<T: Real>(
                     let dp = &dpix[p * c..(p + 1) * c];
                     let rc = &mut rec[p * c..(p + 1) * c];
                     // rec = colour composited behind this Gaussian, per unit transmittance.
-                    let mut dalpha =
-                        T::blend_back(&mut local[..c], dp, feat, rc, wgt, alpha, one_m);
+                    let mut dalpha = if AVX2 {
+                        // SAFETY: AVX2 = true only in the AVX2 kernel, entered after the check.
+                        unsafe {
+                            T::blend_back_avx2(&mut local[..c], dp, feat, rc, wgt, alpha, one_m)
+                        }
+                    } else {
+                        T::blend_back(&mut local[..c], dp, feat, rc, wgt, alpha, one_m)
+                    };
                     dalpha = dalpha * t - t_final[p] / one_m * bg_dot[p];
                     // alpha = min(0.99, o G): no gradient where the clamp is active.
                     if s.opacity * gexp < max_alpha {

@@ -45,6 +45,17 @@ pub trait Real:
             *a += f * w;
         }
     }
+    /// Bit i set where `power[i] <= 0` and `alpha[i] >= min_alpha` (16 lanes).
+    #[inline(always)]
+    fn lane_mask(power: &[Self; 16], alpha: &[Self; 16], min_alpha: Self) -> u32 {
+        let mut mask = 0u32;
+        for i in 0..16 {
+            if power[i] <= Self::ZERO && alpha[i] >= min_alpha {
+                mask |= 1 << i;
+            }
+        }
+        mask
+    }
     /// `acc = sum_i w_i * features[g_i]` in list order, for one pixel (`acc.len()` channels).
     #[inline(always)]
     fn weighted_sum(list: &[(u32, Self)], features: &[Self], acc: &mut [Self]) {
@@ -90,6 +101,22 @@ pub trait Real:
             rec[i] = alpha * feat[i] + one_m * rec[i];
         }
         dalpha
+    }
+    /// [`Real::blend_back`] for callers already running with AVX2 enabled.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[inline(always)]
+    unsafe fn blend_back_avx2(
+        local: &mut [Self],
+        dp: &[Self],
+        feat: &[Self],
+        rec: &mut [Self],
+        w: Self,
+        alpha: Self,
+        one_m: Self,
+    ) -> Self {
+        Self::blend_back(local, dp, feat, rec, w, alpha, one_m)
     }
     /// Order-preserving key for sorting by depth (only used for finite, positive depths).
     fn total_cmp(&self, o: &Self) -> std::cmp::Ordering;
@@ -175,6 +202,10 @@ impl FexpImpl for f64 {
 impl_real!(
     f32,
     #[inline(always)]
+    fn lane_mask(power: &[f32; 16], alpha: &[f32; 16], min_alpha: f32) -> u32 {
+        simd::lane_mask_f32(power, alpha, min_alpha)
+    },
+    #[inline(always)]
     fn axpy(acc: &mut [f32], feat: &[f32], w: f32) {
         simd::axpy_f32(acc, feat, w)
     },
@@ -189,6 +220,28 @@ impl_real!(
         one_m: f32,
     ) -> f32 {
         simd::blend_back_f32(local, dp, feat, rec, w, alpha, one_m)
+    },
+    #[inline(always)]
+    unsafe fn blend_back_avx2(
+        local: &mut [f32],
+        dp: &[f32],
+        feat: &[f32],
+        rec: &mut [f32],
+        w: f32,
+        alpha: f32,
+        one_m: f32,
+    ) -> f32 {
+        #[cfg(target_arch = "x86_64")]
+        if let (Ok(l), Ok(d), Ok(f), Ok(r)) = (
+            <&mut [f32; 32]>::try_from(&mut *local),
+            <&[f32; 32]>::try_from(dp),
+            <&[f32; 32]>::try_from(feat),
+            <&mut [f32; 32]>::try_from(&mut *rec),
+        ) {
+            // SAFETY: the caller guarantees AVX2.
+            return unsafe { simd::blend_back_32_avx2(l, d, f, r, w, alpha, one_m) };
+        }
+        simd::blend_back_f32(local, dp, feat, rec, w, alpha, one_m)
     }
 );
 impl_real!(f64);
@@ -197,6 +250,88 @@ impl_real!(f64);
 /// they need no runtime check; inside the AVX2-compiled band kernels the compiler may widen
 /// them). Other targets use the scalar loops.
 mod simd {
+    /// The 32-channel backward step as a separate AVX2 function: its arguments are distinct
+    /// references (so the compiler knows they do not alias) and it is compiled for 8-wide
+    /// vectors; eight partial sums keep the dot product vectorised (a fixed order, so results
+    /// are still deterministic).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn blend_back_32_avx2(
+        local: &mut [f32; 32],
+        dp: &[f32; 32],
+        feat: &[f32; 32],
+        rec: &mut [f32; 32],
+        w: f32,
+        alpha: f32,
+        one_m: f32,
+    ) -> f32 {
+        use std::arch::x86_64::*;
+        let (wv, av, ov) = (
+            _mm256_set1_ps(w),
+            _mm256_set1_ps(alpha),
+            _mm256_set1_ps(one_m),
+        );
+        let mut part = _mm256_setzero_ps();
+        let (l, d, f, r) = (
+            local.as_mut_ptr(),
+            dp.as_ptr(),
+            feat.as_ptr(),
+            rec.as_mut_ptr(),
+        );
+        for j in 0..4 {
+            let i = 8 * j;
+            // SAFETY: i + 8 <= 32 for every array.
+            unsafe {
+                let dv = _mm256_loadu_ps(d.add(i));
+                let fv = _mm256_loadu_ps(f.add(i));
+                let rv = _mm256_loadu_ps(r.add(i));
+                let lv = _mm256_loadu_ps(l.add(i));
+                _mm256_storeu_ps(l.add(i), _mm256_add_ps(lv, _mm256_mul_ps(wv, dv)));
+                part = _mm256_add_ps(part, _mm256_mul_ps(_mm256_sub_ps(fv, rv), dv));
+                _mm256_storeu_ps(
+                    r.add(i),
+                    _mm256_add_ps(_mm256_mul_ps(av, fv), _mm256_mul_ps(ov, rv)),
+                );
+            }
+        }
+        let mut lanes = [0.0f32; 8];
+        // SAFETY: 8 floats into an 8-float array.
+        unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), part) };
+        ((lanes[0] + lanes[4]) + (lanes[1] + lanes[5]))
+            + ((lanes[2] + lanes[6]) + (lanes[3] + lanes[7]))
+    }
+
+    #[inline(always)]
+    pub fn lane_mask_f32(power: &[f32; 16], alpha: &[f32; 16], min_alpha: f32) -> u32 {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::*;
+            // SAFETY: 4 loads of 4 lanes each from 16-element arrays.
+            unsafe {
+                let zero = _mm_setzero_ps();
+                let lim = _mm_set1_ps(min_alpha);
+                let mut mask = 0u32;
+                for q in 0..4 {
+                    let p = _mm_loadu_ps(power.as_ptr().add(4 * q));
+                    let a = _mm_loadu_ps(alpha.as_ptr().add(4 * q));
+                    let keep = _mm_and_ps(_mm_cmple_ps(p, zero), _mm_cmpge_ps(a, lim));
+                    mask |= (_mm_movemask_ps(keep) as u32) << (4 * q);
+                }
+                mask
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let mut mask = 0u32;
+            for i in 0..16 {
+                if power[i] <= 0.0 && alpha[i] >= min_alpha {
+                    mask |= 1 << i;
+                }
+            }
+            mask
+        }
+    }
+
     #[inline(always)]
     pub fn axpy_f32(acc: &mut [f32], feat: &[f32], w: f32) {
         let n = acc.len().min(feat.len());
