@@ -19,9 +19,8 @@ fn bench(c: &mut Criterion) {
             .map(|t| Var::from_tensor(t).expect("var"))
             .collect();
         let bg = Tensor::zeros(32, DType::F32, &dev).expect("background");
-        let gaussians = |v: &[Var]| -> [Tensor; 5] {
-            [0, 1, 2, 3, 4].map(|i| v[i].as_tensor().clone())
-        };
+        let gaussians =
+            |v: &[Var]| -> [Tensor; 5] { [0, 1, 2, 3, 4].map(|i| v[i].as_tensor().clone()) };
         group.bench_function(format!("{regime:?}/forward"), |b| {
             b.iter(|| {
                 let [m, f, o, s, r] = &tensors;
