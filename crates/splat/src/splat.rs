@@ -147,6 +147,31 @@ impl SplatOp {
     }
 }
 
+impl SplatOp {
+    /// Runs the backward on host copies of `[geom, features, background, grad]` and wraps the
+    /// three gradients as tensors shaped like the op's inputs.
+    fn backward_tensors<T: Real>(
+        &self,
+        states: &[ItemState<T>],
+        [geom, feats, bg, grad]: [&Tensor; 4],
+    ) -> candle_core::Result<(Tensor, Tensor, Tensor)> {
+        let host = |t: &Tensor| t.flatten_all()?.to_vec1::<T>();
+        let (g, f, b) = self.run_backward::<T>(
+            states,
+            &host(geom)?,
+            &host(feats)?,
+            &host(bg)?,
+            &host(grad)?,
+        );
+        let dev = geom.device();
+        Ok((
+            Tensor::from_vec(g, geom.shape(), dev)?,
+            Tensor::from_vec(f, feats.shape(), dev)?,
+            Tensor::from_vec(b, bg.shape(), dev)?,
+        ))
+    }
+}
+
 impl candle_core::CustomOp3 for SplatOp {
     fn name(&self) -> &'static str {
         "gagavatar-splat"
@@ -192,36 +217,10 @@ impl candle_core::CustomOp3 for SplatOp {
         let Some(saved) = guard.as_ref() else {
             candle_core::bail!("gagavatar-splat: backward called without a forward");
         };
-        let dev = arg1.device();
+        let args = [arg1, arg2, arg3, grad_res];
         let (g, f, b) = match saved {
-            Saved::F32(st) => {
-                let (g, f, b) = self.run_backward::<f32>(
-                    st,
-                    &arg1.flatten_all()?.to_vec1()?,
-                    &arg2.flatten_all()?.to_vec1()?,
-                    &arg3.flatten_all()?.to_vec1()?,
-                    &grad_res.flatten_all()?.to_vec1()?,
-                );
-                (
-                    Tensor::from_vec(g, arg1.shape(), dev)?,
-                    Tensor::from_vec(f, arg2.shape(), dev)?,
-                    Tensor::from_vec(b, arg3.shape(), dev)?,
-                )
-            }
-            Saved::F64(st) => {
-                let (g, f, b) = self.run_backward::<f64>(
-                    st,
-                    &arg1.flatten_all()?.to_vec1()?,
-                    &arg2.flatten_all()?.to_vec1()?,
-                    &arg3.flatten_all()?.to_vec1()?,
-                    &grad_res.flatten_all()?.to_vec1()?,
-                );
-                (
-                    Tensor::from_vec(g, arg1.shape(), dev)?,
-                    Tensor::from_vec(f, arg2.shape(), dev)?,
-                    Tensor::from_vec(b, arg3.shape(), dev)?,
-                )
-            }
+            Saved::F32(st) => self.backward_tensors::<f32>(st, args)?,
+            Saved::F64(st) => self.backward_tensors::<f64>(st, args)?,
         };
         Ok((Some(g), Some(f), Some(b)))
     }
