@@ -99,6 +99,44 @@ fn eval_row<T: Real>(
     T::lane_mask(&out.power, &out.alpha, T::lit(MIN_ALPHA))
 }
 
+/// One Gaussian on one tile row: evaluates its alpha on all 16 lanes and advances the
+/// transmittance of the lanes in `live` exactly as the release does per pixel. Returns the bit
+/// masks of lanes that took the Gaussian (their weight alpha*T is in `w`) and of lanes that
+/// stopped before it (T would have dropped below 1e-4).
+#[inline(always)]
+pub(crate) fn row_step<T: Real>(
+    s: &Splat2D<T>,
+    x0: usize,
+    py: T,
+    live: u32,
+    trow: &mut [T; TILE],
+    w: &mut [T; TILE],
+) -> (u32, u32) {
+    let mut lanes = Lanes {
+        power: [T::ZERO; TILE],
+        gexp: [T::ZERO; TILE],
+        alpha: [T::ZERO; TILE],
+    };
+    let mut mask = eval_row(s, &lane_offsets(), x0, py, &mut lanes) & live;
+    let min_t = T::lit(MIN_TRANSMITTANCE);
+    let (mut added, mut stopped) = (0u32, 0u32);
+    while mask != 0 {
+        let lx = mask.trailing_zeros() as usize;
+        mask &= mask - 1;
+        let alpha = lanes.alpha[lx];
+        let t = trow[lx];
+        let test_t = t * (T::ONE - alpha);
+        if test_t < min_t {
+            stopped |= 1 << lx;
+            continue;
+        }
+        w[lx] = alpha * t;
+        trow[lx] = test_t;
+        added |= 1 << lx;
+    }
+    (added, stopped)
+}
+
 /// Splits `[C, H, W]` planes into per-band row slices so bands can be written in parallel.
 fn band_slices<T>(
     data: &mut [T],
@@ -137,7 +175,31 @@ fn has_avx2() -> bool {
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn forward_band_avx2<T: Real>(f: &Frame<T>, ty: usize, out: BandOut<T>) {
-    forward_band(f, ty, out)
+    forward_band::<T, false>(f, ty, out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2")]
+unsafe fn forward_band_avx512<T: Real>(f: &Frame<T>, ty: usize, out: BandOut<T>) {
+    forward_band::<T, true>(f, ty, out)
+}
+
+/// Whether the 16-lane AVX-512 row kernel can run (it is bit-identical to the portable one).
+#[inline]
+fn has_avx512() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx512f") && !simd_disabled()
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// `GAGAVATAR_NO_AVX512=1` forces the portable row kernel (to compare paths or debug).
+fn simd_disabled() -> bool {
+    std::env::var_os("GAGAVATAR_NO_AVX512").is_some_and(|v| v != "0")
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -175,21 +237,27 @@ pub fn forward<T: Real>(f: &Frame<T>) -> (Vec<T>, PixelState<T>) {
         })
         .collect();
     let avx2 = has_avx2();
+    let avx512 = avx2 && has_avx512();
     outs.into_par_iter().enumerate().for_each(|(ty, out)| {
+        #[cfg(target_arch = "x86_64")]
+        if avx512 {
+            // SAFETY: the CPU supports AVX-512F and AVX2 (checked above).
+            return unsafe { forward_band_avx512(f, ty, out) };
+        }
         #[cfg(target_arch = "x86_64")]
         if avx2 {
             // SAFETY: the CPU supports AVX2 (checked by has_avx2).
             return unsafe { forward_band_avx2(f, ty, out) };
         }
-        forward_band(f, ty, out)
+        forward_band::<T, false>(f, ty, out)
     });
     (image, PixelState { final_t, n_contrib })
 }
 
 #[inline(always)]
-fn forward_band<T: Real>(f: &Frame<T>, ty: usize, mut out: BandOut<T>) {
+fn forward_band<T: Real, const AVX512: bool>(f: &Frame<T>, ty: usize, mut out: BandOut<T>) {
     let band = &f.bins.bands[ty];
-    let lane_x = lane_offsets::<T>();
+    let mut wrow = [T::ZERO; TILE];
     let (w, h, c) = (f.width, f.height, f.channels);
     let y0 = ty * TILE;
     let th = TILE.min(h - y0);
@@ -199,12 +267,6 @@ fn forward_band<T: Real>(f: &Frame<T>, ty: usize, mut out: BandOut<T>) {
     let mut contrib: Vec<(u32, u32, T)> = Vec::new();
     let mut grouped: Vec<(u32, T)> = Vec::new();
     let mut acc = vec![T::ZERO; c];
-    let mut lanes = Lanes {
-        power: [T::ZERO; TILE],
-        gexp: [T::ZERO; TILE],
-        alpha: [T::ZERO; TILE],
-    };
-    let min_t = T::lit(MIN_TRANSMITTANCE);
     for tx in 0..w.div_ceil(TILE) {
         let x0 = tx * TILE;
         let tw = TILE.min(w - x0);
@@ -231,22 +293,24 @@ fn forward_band<T: Real>(f: &Frame<T>, ty: usize, mut out: BandOut<T>) {
                     continue;
                 }
                 let py = T::lit((y0 + ly) as f64);
-                let mut mask = eval_row(s, &lane_x, x0, py, &mut lanes) & !row_done[ly];
-                while mask != 0 {
-                    let lx = mask.trailing_zeros() as usize;
-                    mask &= mask - 1;
+                let live = !row_done[ly] & FULL_ROW;
+                let trow: &mut [T; TILE] = (&mut tr[ly * TILE..(ly + 1) * TILE])
+                    .try_into()
+                    .expect("a tile row has TILE pixels");
+                let (mut added, stopped) = if AVX512 {
+                    // SAFETY: AVX512 = true only in the AVX-512 kernel, entered after the check.
+                    unsafe { T::row_step_avx512(s, x0, py, live, trow, &mut wrow) }
+                } else {
+                    row_step(s, x0, py, live, trow, &mut wrow)
+                };
+                row_done[ly] |= stopped;
+                ndone += stopped.count_ones() as usize;
+                while added != 0 {
+                    let lx = added.trailing_zeros() as usize;
+                    added &= added - 1;
                     let p = ly * TILE + lx;
-                    let alpha = lanes.alpha[lx];
-                    let t = tr[p];
-                    let test_t = t * (T::ONE - alpha);
-                    if test_t < min_t {
-                        row_done[ly] |= 1 << lx;
-                        ndone += 1;
-                        continue;
-                    }
-                    contrib.push((p as u32, gi, alpha * t));
+                    contrib.push((p as u32, gi, wrow[lx]));
                     counts[p + 1] += 1;
-                    tr[p] = test_t;
                     last[p] = k as u32 + 1;
                 }
             }

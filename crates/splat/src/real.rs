@@ -118,6 +118,21 @@ pub trait Real:
     ) -> Self {
         Self::blend_back(local, dp, feat, rec, w, alpha, one_m)
     }
+    /// [`crate::raster::row_step`] compiled for AVX-512.
+    ///
+    /// # Safety
+    /// The CPU must support AVX-512F.
+    #[inline(always)]
+    unsafe fn row_step_avx512(
+        s: &crate::project::Splat2D<Self>,
+        x0: usize,
+        py: Self,
+        live: u32,
+        trow: &mut [Self; 16],
+        w: &mut [Self; 16],
+    ) -> (u32, u32) {
+        crate::raster::row_step(s, x0, py, live, trow, w)
+    }
     /// Order-preserving key for sorting by depth (only used for finite, positive depths).
     fn total_cmp(&self, o: &Self) -> std::cmp::Ordering;
 }
@@ -222,6 +237,23 @@ impl_real!(
         simd::blend_back_f32(local, dp, feat, rec, w, alpha, one_m)
     },
     #[inline(always)]
+    unsafe fn row_step_avx512(
+        s: &crate::project::Splat2D<f32>,
+        x0: usize,
+        py: f32,
+        live: u32,
+        trow: &mut [f32; 16],
+        w: &mut [f32; 16],
+    ) -> (u32, u32) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            // SAFETY: the caller guarantees AVX-512F.
+            unsafe { simd::row_step_avx512(s, x0, py, live, trow, w) }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        crate::raster::row_step(s, x0, py, live, trow, w)
+    },
+    #[inline(always)]
     unsafe fn blend_back_avx2(
         local: &mut [f32],
         dp: &[f32],
@@ -250,6 +282,94 @@ impl_real!(f64);
 /// they need no runtime check; inside the AVX2-compiled band kernels the compiler may widen
 /// them). Other targets use the scalar loops.
 mod simd {
+    /// One Gaussian on one 16-pixel tile row in a single 16-lane AVX-512 pass: the same
+    /// operations in the same order as [`crate::raster::row_step`] (and the same exp
+    /// polynomial as [`super::exp_f32`]), so results are bit-identical to the portable path.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f")]
+    pub unsafe fn row_step_avx512(
+        s: &crate::project::Splat2D<f32>,
+        x0: usize,
+        py: f32,
+        live: u32,
+        trow: &mut [f32; 16],
+        w: &mut [f32; 16],
+    ) -> (u32, u32) {
+        use std::arch::x86_64::*;
+        let set = _mm512_set1_ps;
+        let neg = |x: __m512| {
+            _mm512_castsi512_ps(_mm512_xor_si512(
+                _mm512_castps_si512(x),
+                _mm512_set1_epi32(i32::MIN),
+            ))
+        };
+        let dy = s.my - py;
+        let cdy = s.cc * dy * dy;
+        let bdy = s.cb * dy;
+        let lanes = _mm512_setr_ps(
+            0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0, 13.0, 14.0, 15.0,
+        );
+        let px = _mm512_add_ps(set(x0 as f32), lanes);
+        let dx = _mm512_sub_ps(set(s.mx), px);
+        let quad = _mm512_add_ps(_mm512_mul_ps(_mm512_mul_ps(set(s.ca), dx), dx), set(cdy));
+        let power = _mm512_sub_ps(
+            neg(_mm512_mul_ps(set(0.5), quad)),
+            _mm512_mul_ps(set(bdy), dx),
+        );
+        // exp_f32, step by step.
+        const LOG2E: f32 = std::f32::consts::LOG2_E;
+        const LN2_HI: f32 = 0.693_359_4;
+        const LN2_LO: f32 = -2.121_944_4e-4;
+        const ROUND: f32 = 12_582_912.0;
+        let x = _mm512_min_ps(_mm512_max_ps(power, set(-87.0)), set(88.0));
+        let shifted = _mm512_add_ps(_mm512_mul_ps(x, set(LOG2E)), set(ROUND));
+        let k = _mm512_sub_ps(shifted, set(ROUND));
+        let r = _mm512_sub_ps(
+            _mm512_sub_ps(x, _mm512_mul_ps(k, set(LN2_HI))),
+            _mm512_mul_ps(k, set(LN2_LO)),
+        );
+        let mut p = set(1.987_569_2e-4);
+        for c in [
+            1.398_2e-3,
+            8.333_452e-3,
+            4.166_579_6e-2,
+            1.666_666_5e-1,
+            0.5,
+        ] {
+            p = _mm512_add_ps(_mm512_mul_ps(p, r), set(c));
+        }
+        let e = _mm512_add_ps(
+            _mm512_add_ps(_mm512_mul_ps(_mm512_mul_ps(p, r), r), r),
+            set(1.0),
+        );
+        let kbits = _mm512_sub_epi32(
+            _mm512_castps_si512(shifted),
+            _mm512_set1_epi32(ROUND.to_bits() as i32),
+        );
+        let scale = _mm512_castsi512_ps(_mm512_slli_epi32::<23>(_mm512_add_epi32(
+            kbits,
+            _mm512_set1_epi32(127),
+        )));
+        let g = _mm512_mul_ps(e, scale);
+        let alpha = _mm512_min_ps(_mm512_mul_ps(set(s.opacity), g), set(0.99));
+        let valid = _mm512_cmp_ps_mask::<_CMP_LE_OQ>(power, _mm512_setzero_ps())
+            & _mm512_cmp_ps_mask::<_CMP_GE_OQ>(alpha, set((1.0f64 / 255.0) as f32))
+            & (live as u16);
+        if valid == 0 {
+            return (0, 0);
+        }
+        // SAFETY: 16-float loads and stores on 16-float arrays.
+        unsafe {
+            let t = _mm512_loadu_ps(trow.as_ptr());
+            let test = _mm512_mul_ps(t, _mm512_sub_ps(set(1.0), alpha));
+            let low = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(test, set(1e-4));
+            let added = valid & !low;
+            _mm512_storeu_ps(w.as_mut_ptr(), _mm512_mul_ps(alpha, t));
+            _mm512_storeu_ps(trow.as_mut_ptr(), _mm512_mask_mov_ps(t, added, test));
+            (added as u32, (valid & low) as u32)
+        }
+    }
+
     /// The 32-channel backward step as a separate AVX2 function: its arguments are distinct
     /// references (so the compiler knows they do not alias) and it is compiled for 8-wide
     /// vectors; eight partial sums keep the dot product vectorised (a fixed order, so results
