@@ -78,7 +78,7 @@ fn bench_splat(args: SplatBench) -> Result<()> {
     for &regime in regimes {
         let (scene, cam) = avatar_scene(args.plane, 5023, args.channels, regime, 1);
         let dev = Device::Cpu;
-        let [m, f, o, s, r] = scene.to_tensors(&dev)?;
+        let tensors = scene.to_tensors(&dev)?;
         let bg = Tensor::zeros(args.channels, candle_core::DType::F32, &dev)?;
         let pb = ProgressBar::new(2 * (runs as u64 + 1));
         pb.set_style(ProgressStyle::with_template(
@@ -93,13 +93,7 @@ fn bench_splat(args: SplatBench) -> Result<()> {
             for i in 0..=runs {
                 let t0 = Instant::now();
                 let out = splat(
-                    &Gaussians {
-                        means: &m,
-                        features: &f,
-                        opacities: &o,
-                        scales: &s,
-                        rotations: &r,
-                    },
+                    &Gaussians::from_tensors(&tensors),
                     &bg,
                     std::slice::from_ref(&cam),
                 )?;
@@ -112,22 +106,14 @@ fn bench_splat(args: SplatBench) -> Result<()> {
                 }
                 pb.inc(1);
             }
-            let vars = [
-                Var::from_tensor(&m)?,
-                Var::from_tensor(&f)?,
-                Var::from_tensor(&o)?,
-                Var::from_tensor(&s)?,
-                Var::from_tensor(&r)?,
-            ];
+            let vars = tensors
+                .iter()
+                .map(Var::from_tensor)
+                .collect::<candle_core::Result<Vec<_>>>()?;
+            let var_tensors: [Tensor; 5] = std::array::from_fn(|i| vars[i].as_tensor().clone());
             for i in 0..=runs {
                 let out = splat(
-                    &Gaussians {
-                        means: vars[0].as_tensor(),
-                        features: vars[1].as_tensor(),
-                        opacities: vars[2].as_tensor(),
-                        scales: vars[3].as_tensor(),
-                        rotations: vars[4].as_tensor(),
-                    },
+                    &Gaussians::from_tensors(&var_tensors),
                     &bg,
                     std::slice::from_ref(&cam),
                 )?;

@@ -1,8 +1,8 @@
 //! `gagavatar flame ...`: FLAME utilities (synthetic asset, mesh export).
 
+use gagavatar_splat::scene::write_atomic;
 use std::fmt::Write as _;
-use std::io::Write as _;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use anyhow::Context;
 use candle_core::{DType, Device};
@@ -115,41 +115,14 @@ fn obj_text(verts: &[Vec<f32>], faces: &[[u32; 3]]) -> String {
     s
 }
 
-/// Writes beside the target and renames, so a crash or a full disk never leaves a truncated file
-/// under the requested name.
-fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    let name = path
-        .file_name()
-        .with_context(|| format!("{}: not a file path", path.display()))?;
-    let tmp = dir.join(format!(
-        ".{}.tmp-{}",
-        name.to_string_lossy(),
-        std::process::id()
-    ));
-    let result = (|| -> std::io::Result<()> {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if let Err(e) = result {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(e).with_context(|| format!("cannot write {}", path.display()));
-    }
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
     fn mesh_exports_a_reduced_asset_given_its_split() {
-        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../crates/flame/tests/golden");
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../crates/flame/tests/golden");
         let dir = std::env::temp_dir().join(format!("gagavatar-flame-mesh-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let params = dir.join("frame.json");

@@ -116,16 +116,10 @@ pub fn run_splat(args: SplatArgs) -> Result<()> {
         None => vec![0.0; c],
     };
     let dev = Device::Cpu;
-    let [means, features, opacities, scales, rotations] = scene.to_tensors(&dev)?;
+    let tensors = scene.to_tensors(&dev)?;
     let bg = Tensor::from_vec(bg, c, &dev)?;
     let out = splat(
-        &Gaussians {
-            means: &means,
-            features: &features,
-            opacities: &opacities,
-            scales: &scales,
-            rotations: &rotations,
-        },
+        &Gaussians::from_tensors(&tensors),
         &bg,
         std::slice::from_ref(&cam),
     )?;

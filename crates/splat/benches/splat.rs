@@ -23,15 +23,8 @@ fn bench(c: &mut Criterion) {
             |v: &[Var]| -> [Tensor; 5] { [0, 1, 2, 3, 4].map(|i| v[i].as_tensor().clone()) };
         group.bench_function(format!("{regime:?}/forward"), |b| {
             b.iter(|| {
-                let [m, f, o, s, r] = &tensors;
                 splat(
-                    &Gaussians {
-                        means: m,
-                        features: f,
-                        opacities: o,
-                        scales: s,
-                        rotations: r,
-                    },
+                    &Gaussians::from_tensors(&tensors),
                     &bg,
                     std::slice::from_ref(&cam),
                 )
@@ -40,15 +33,9 @@ fn bench(c: &mut Criterion) {
         });
         group.bench_function(format!("{regime:?}/forward+backward"), |b| {
             b.iter(|| {
-                let [m, f, o, s, r] = gaussians(&vars);
+                let var_tensors = gaussians(&vars);
                 let out = splat(
-                    &Gaussians {
-                        means: &m,
-                        features: &f,
-                        opacities: &o,
-                        scales: &s,
-                        rotations: &r,
-                    },
+                    &Gaussians::from_tensors(&var_tensors),
                     &bg,
                     std::slice::from_ref(&cam),
                 )

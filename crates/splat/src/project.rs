@@ -84,8 +84,7 @@ pub struct Splat2D<T> {
     /// 1/255.
     pub cut: T,
     pub depth: T,
-    /// Dilated 2D covariance diagonal.
-    pub va: T,
+    /// Dilated 2D covariance yy entry: with `cut` it bounds the rows the Gaussian can reach.
     pub vc: T,
 }
 
@@ -235,22 +234,15 @@ pub const GEOM: usize = 11;
 /// Projects all Gaussians in parallel. Results depend only on each Gaussian, so they are
 /// identical for any thread count.
 pub fn project<T: Real>(cam: &CamK<T>, geom: &[T]) -> Projected<T> {
-    let rows: Vec<(Splat2D<T>, u32, [u16; 4])> = geom
+    let (g, (radius, rect)) = geom
         .par_chunks(GEOM)
         .with_min_len(2048)
-        .map(|g| project_one(cam, g))
-        .collect();
-    let mut out = Projected {
-        g: Vec::with_capacity(rows.len()),
-        radius: Vec::with_capacity(rows.len()),
-        rect: Vec::with_capacity(rows.len()),
-    };
-    for (g, r, rect) in rows {
-        out.g.push(g);
-        out.radius.push(r);
-        out.rect.push(rect);
-    }
-    out
+        .map(|g| {
+            let (s, r, rect) = project_one(cam, g);
+            (s, (r, rect))
+        })
+        .unzip();
+    Projected { g, radius, rect }
 }
 
 #[inline(always)]
@@ -305,7 +297,6 @@ fn project_one<T: Real>(cam: &CamK<T>, g: &[T]) -> (Splat2D<T>, u32, [u16; 4]) {
             opacity,
             cut: T::lit(cut),
             depth: geo.t[2],
-            va: a,
             vc: c,
         },
         radius as u32,

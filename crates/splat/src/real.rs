@@ -27,24 +27,13 @@ pub trait Real:
     const ONE: Self;
     fn lit(v: f64) -> Self;
     fn as_f64(self) -> f64;
-    fn exp(self) -> Self;
     /// exp for the compositing hot loop: branch-free so loops over pixels vectorise (f32), or
     /// the standard one (f64, where exactness matters more than speed).
     fn fexp(self) -> Self;
-    fn ln(self) -> Self;
     fn sqrt(self) -> Self;
     fn ceil(self) -> Self;
-    fn floor(self) -> Self;
-    fn is_finite(self) -> bool;
     fn fmin(self, o: Self) -> Self;
     fn fmax(self, o: Self) -> Self;
-    /// `acc += w * feat` over the feature channels.
-    #[inline(always)]
-    fn axpy(acc: &mut [Self], feat: &[Self], w: Self) {
-        for (a, &f) in acc.iter_mut().zip(feat) {
-            *a += f * w;
-        }
-    }
     /// Bit i set where `power[i] <= 0` and `alpha[i] >= min_alpha` (16 lanes).
     #[inline(always)]
     fn lane_mask(power: &[Self; 16], alpha: &[Self; 16], min_alpha: Self) -> u32 {
@@ -133,8 +122,6 @@ pub trait Real:
     ) -> (u32, u32) {
         crate::raster::row_step(s, x0, py, live, trow, w)
     }
-    /// Order-preserving key for sorting by depth (only used for finite, positive depths).
-    fn total_cmp(&self, o: &Self) -> std::cmp::Ordering;
 }
 
 macro_rules! impl_real {
@@ -152,32 +139,12 @@ macro_rules! impl_real {
                 self as f64
             }
             #[inline(always)]
-            fn exp(self) -> Self {
-                <$t>::exp(self)
-            }
-            #[inline(always)]
-            fn fexp(self) -> Self {
-                fexp_impl(self)
-            }
-            #[inline(always)]
-            fn ln(self) -> Self {
-                <$t>::ln(self)
-            }
-            #[inline(always)]
             fn sqrt(self) -> Self {
                 <$t>::sqrt(self)
             }
             #[inline(always)]
             fn ceil(self) -> Self {
                 <$t>::ceil(self)
-            }
-            #[inline(always)]
-            fn floor(self) -> Self {
-                <$t>::floor(self)
-            }
-            #[inline(always)]
-            fn is_finite(self) -> bool {
-                <$t>::is_finite(self)
             }
             #[inline(always)]
             fn fmin(self, o: Self) -> Self {
@@ -187,33 +154,9 @@ macro_rules! impl_real {
             fn fmax(self, o: Self) -> Self {
                 <$t>::max(self, o)
             }
-            #[inline(always)]
-            fn total_cmp(&self, o: &Self) -> std::cmp::Ordering {
-                <$t>::total_cmp(self, o)
-            }
         }
     };
 }
-#[inline(always)]
-fn fexp_impl<T: FexpImpl>(x: T) -> T {
-    x.fexp_impl()
-}
-trait FexpImpl {
-    fn fexp_impl(self) -> Self;
-}
-impl FexpImpl for f32 {
-    #[inline(always)]
-    fn fexp_impl(self) -> Self {
-        exp_f32(self)
-    }
-}
-impl FexpImpl for f64 {
-    #[inline(always)]
-    fn fexp_impl(self) -> Self {
-        self.exp()
-    }
-}
-
 impl_real!(
     f32,
     #[inline(always)]
@@ -221,8 +164,8 @@ impl_real!(
         simd::lane_mask_f32(power, alpha, min_alpha)
     },
     #[inline(always)]
-    fn axpy(acc: &mut [f32], feat: &[f32], w: f32) {
-        simd::axpy_f32(acc, feat, w)
+    fn fexp(self) -> f32 {
+        exp_f32(self)
     },
     #[inline(always)]
     fn blend_back(
@@ -276,7 +219,13 @@ impl_real!(
         simd::blend_back_f32(local, dp, feat, rec, w, alpha, one_m)
     }
 );
-impl_real!(f64);
+impl_real!(
+    f64,
+    #[inline(always)]
+    fn fexp(self) -> f64 {
+        self.exp()
+    }
+);
 
 /// Explicit 4-lane SSE kernels for the channel loops (SSE is part of the x86-64 baseline, so
 /// they need no runtime check; inside the AVX2-compiled band kernels the compiler may widen
@@ -449,33 +398,6 @@ mod simd {
                 }
             }
             mask
-        }
-    }
-
-    #[inline(always)]
-    pub fn axpy_f32(acc: &mut [f32], feat: &[f32], w: f32) {
-        let n = acc.len().min(feat.len());
-        #[cfg(target_arch = "x86_64")]
-        {
-            use std::arch::x86_64::*;
-            let quads = n / 4;
-            // SAFETY: every access is within the first 4 * quads <= n elements of both slices.
-            unsafe {
-                let wv = _mm_set1_ps(w);
-                let (a, f) = (acc.as_mut_ptr(), feat.as_ptr());
-                for q in 0..quads {
-                    let av = _mm_loadu_ps(a.add(4 * q));
-                    let fv = _mm_loadu_ps(f.add(4 * q));
-                    _mm_storeu_ps(a.add(4 * q), _mm_add_ps(av, _mm_mul_ps(fv, wv)));
-                }
-            }
-            for i in 4 * quads..n {
-                acc[i] += feat[i] * w;
-            }
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        for i in 0..n {
-            acc[i] += feat[i] * w;
         }
     }
 

@@ -22,6 +22,21 @@ pub struct Gaussians<'a> {
     pub rotations: &'a Tensor,
 }
 
+impl<'a> Gaussians<'a> {
+    /// Borrows `[means, features, opacities, scales, rotations]`, the order of
+    /// [`crate::GaussianScene::to_tensors`].
+    pub fn from_tensors(t: &'a [Tensor; 5]) -> Self {
+        let [means, features, opacities, scales, rotations] = t;
+        Self {
+            means,
+            features,
+            opacities,
+            scales,
+            rotations,
+        }
+    }
+}
+
 /// What a splat returns.
 #[derive(Debug, Clone)]
 pub struct SplatOutput {
@@ -62,13 +77,34 @@ fn slice<'a, T: Real>(s: &'a CpuStorage, l: &Layout) -> candle_core::Result<&'a 
 }
 
 impl SplatOp {
+    /// Batch item `b`'s view of the packed inputs.
+    fn frame<'a, T: Real>(
+        &self,
+        b: usize,
+        proj: &'a Projected<T>,
+        bins: &'a Bins,
+        feats: &'a [T],
+        bg: &'a [T],
+    ) -> Frame<'a, T> {
+        let (n, c, cam) = (self.n, self.c, &self.cameras[b]);
+        Frame {
+            proj,
+            bins,
+            features: &feats[b * n * c..(b + 1) * n * c],
+            channels: c,
+            background: &bg[b * c..(b + 1) * c],
+            width: cam.width,
+            height: cam.height,
+        }
+    }
+
     fn run_forward<T: Real>(
         &self,
         geom: &[T],
         feats: &[T],
         bg: &[T],
     ) -> (Vec<T>, Vec<ItemState<T>>) {
-        let (n, c) = (self.n, self.c);
+        let n = self.n;
         let mut image = Vec::new();
         let mut states = Vec::with_capacity(self.cameras.len());
         for (b, cam) in self.cameras.iter().enumerate() {
@@ -76,17 +112,14 @@ impl SplatOp {
             let geom_b = &geom[b * n * GEOM..(b + 1) * n * GEOM];
             let proj = project(&k, geom_b);
             let bins = bin(&proj, k.grid_x, k.grid_y);
-            let frame = Frame {
-                proj: &proj,
-                bins: &bins,
-                features: &feats[b * n * c..(b + 1) * n * c],
-                channels: c,
-                background: &bg[b * c..(b + 1) * c],
-                width: cam.width,
-                height: cam.height,
-            };
+            let frame = self.frame(b, &proj, &bins, feats, bg);
             let (img, pix) = forward(&frame);
-            image.extend_from_slice(&img);
+            // The first (often only) item's image is kept as it is, not copied.
+            if image.is_empty() {
+                image = img;
+            } else {
+                image.extend_from_slice(&img);
+            }
             states.push(ItemState { proj, bins, pix });
         }
         (image, states)
@@ -108,15 +141,7 @@ impl SplatOp {
         for (b, (cam, st)) in self.cameras.iter().zip(states).enumerate() {
             let k = CamK::<T>::new(cam);
             let size = c * cam.width * cam.height;
-            let frame = Frame {
-                proj: &st.proj,
-                bins: &st.bins,
-                features: &feats[b * n * c..(b + 1) * n * c],
-                channels: c,
-                background: &bg[b * c..(b + 1) * c],
-                width: cam.width,
-                height: cam.height,
-            };
+            let frame = self.frame(b, &st.proj, &st.bins, feats, bg);
             let g2 = backward(&frame, &st.pix, &grad[off..off + size], n);
             off += size;
             let geom_b = &geom[b * n * GEOM..(b + 1) * n * GEOM];

@@ -15,19 +15,9 @@ fn small_scene() -> GaussianScene {
 }
 
 fn run(s: &GaussianScene, bg: &[f32], cams: &[Camera]) -> Result<SplatOutput, SplatError> {
-    let [m, f, o, sc, r] = s.to_tensors(&Device::Cpu).unwrap();
+    let tensors = s.to_tensors(&Device::Cpu).unwrap();
     let bg = Tensor::from_slice(bg, bg.len(), &Device::Cpu).unwrap();
-    splat(
-        &Gaussians {
-            means: &m,
-            features: &f,
-            opacities: &o,
-            scales: &sc,
-            rotations: &r,
-        },
-        &bg,
-        cams,
-    )
+    splat(&Gaussians::from_tensors(&tensors), &bg, cams)
 }
 
 fn flat(t: &Tensor) -> Vec<f32> {

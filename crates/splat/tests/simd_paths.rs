@@ -14,20 +14,9 @@ fn render() -> Vec<f32> {
         90,
     )
     .unwrap();
-    let [m, f, o, s, r] = scene.to_tensors(&Device::Cpu).unwrap();
+    let tensors = scene.to_tensors(&Device::Cpu).unwrap();
     let bg = Tensor::ones(32, DType::F32, &Device::Cpu).unwrap();
-    let out = splat(
-        &Gaussians {
-            means: &m,
-            features: &f,
-            opacities: &o,
-            scales: &s,
-            rotations: &r,
-        },
-        &bg,
-        &[cam],
-    )
-    .unwrap();
+    let out = splat(&Gaussians::from_tensors(&tensors), &bg, &[cam]).unwrap();
     out.image.flatten_all().unwrap().to_vec1().unwrap()
 }
 
