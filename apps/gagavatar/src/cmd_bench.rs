@@ -16,6 +16,27 @@ pub enum BenchCmd {
         after_help = "Example:\n  gagavatar bench splat --regime small --runs 20 --threads 2"
     )]
     Splat(SplatBench),
+    /// The network: reconstruct (per module) and drive (splat + renderer) on one frame.
+    #[command(
+        after_help = "Seeded random weights of the preset unless --ckpt is given.\n\nExample:\n  gagavatar bench model --preset release --runs 3 --threads 2"
+    )]
+    Model(ModelBench),
+}
+
+#[derive(Debug, Args)]
+pub struct ModelBench {
+    /// Architecture: release, small or tiny.
+    #[arg(long, default_value = "release")]
+    preset: String,
+    /// Weights to use instead of seeded random ones.
+    #[arg(long)]
+    ckpt: Option<std::path::PathBuf>,
+    /// Timed runs (after one warm-up); the median is reported.
+    #[arg(long, default_value_t = 3)]
+    runs: usize,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -47,6 +68,7 @@ pub struct SplatBench {
 pub fn run(cmd: BenchCmd) -> Result<()> {
     match cmd {
         BenchCmd::Splat(args) => bench_splat(args),
+        BenchCmd::Model(args) => bench_model(args),
     }
 }
 
@@ -149,4 +171,120 @@ fn num_cpus() -> usize {
     std::thread::available_parallelism()
         .map(|n| n.get())
         .unwrap_or(1)
+}
+
+fn bench_model(args: ModelBench) -> Result<()> {
+    use gagavatar_net::checkpoint::{init_weights, load_model};
+    use gagavatar_net::style_unet::Noise;
+    use gagavatar_net::{gs_generator::concat_attributes, plane, ModelConfig};
+
+    let threads = args.threads.unwrap_or_else(num_cpus);
+    // candle's matmul reads the thread count from the environment.
+    std::env::set_var("RAYON_NUM_THREADS", threads.to_string());
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .context("building the thread pool")?;
+    let cfg = ModelConfig::preset(&args.preset)
+        .with_context(|| format!("unknown preset `{}`", args.preset))?;
+    let dev = Device::Cpu;
+    let model = match &args.ckpt {
+        Some(p) => load_model(p, Some(&cfg), &dev)?,
+        None => {
+            let w = init_weights(&cfg, 0)?;
+            let mut map = std::collections::HashMap::new();
+            for (k, (s, v)) in w {
+                map.insert(k, Tensor::from_vec(v, s, &dev)?);
+            }
+            let vb = candle_nn::VarBuilder::from_tensors(map, candle_core::DType::F32, &dev);
+            gagavatar_net::model::GagAvatar::new(&cfg, vb)?
+        }
+    };
+    let size = cfg.image_size;
+    let image = Tensor::rand(0f32, 1f32, (1, 3, size, size), &dev)?;
+    let tm = gagavatar_splat::Camera::look_at_origin_matrix(9.0, 0.1, 0.05);
+    let tm: Vec<f32> = tm.iter().flatten().map(|&x| x as f32).collect();
+    let tm = Tensor::from_vec(tm, (1, 3, 4), &dev)?;
+    let verts = Tensor::randn(0f32, 0.4, (1, cfg.n_vertices, 3), &dev)?;
+    let names = [
+        "preprocess",
+        "dino",
+        "dpt head",
+        "plane+encoding",
+        "gs_generator_g",
+        "gs_generator_l0",
+        "gs_generator_l1",
+        "reconstruct (total)",
+        "splat",
+        "renderer",
+        "drive (total)",
+    ];
+    let mut times: Vec<Vec<f64>> = vec![Vec::new(); names.len()];
+    let runs = args.runs.max(1);
+    let bar = ProgressBar::new((runs + 1) as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} ETA {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar.set_message(format!("model {} x{threads}", cfg.name));
+    pool.install(|| -> Result<()> {
+        for run in 0..=runs {
+            let mut t = Vec::with_capacity(names.len());
+            let mut lap = Instant::now();
+            let mut tick = |t: &mut Vec<f64>| {
+                t.push(lap.elapsed().as_secs_f64());
+                lap = Instant::now();
+            };
+            let start = Instant::now();
+            let input = gagavatar_net::dino::preprocess(&image, &cfg)?;
+            tick(&mut t);
+            let dino = model.dino.forward(&input)?;
+            tick(&mut t);
+            let f_local = model.dpt.forward(&dino, &input)?;
+            tick(&mut t);
+            let f_id = gagavatar_net::dino::f_id(&dino[3])?;
+            let (points, dir) = plane::point_plane(&tm, cfg.plane_size(), 12.0)?;
+            let enc = plane::dir_encoding(&dir)?;
+            tick(&mut t);
+            let g = model.gen_g.forward(&model.head_base, &f_id, &enc)?;
+            tick(&mut t);
+            let l0 = model.gen_l0.forward(&f_local, &enc)?;
+            tick(&mut t);
+            let l1 = model.gen_l1.forward(&f_local, &enc)?;
+            tick(&mut t);
+            let _all = concat_attributes(&[&g, &l0.attrs, &l1.attrs])?;
+            drop(points);
+            t.push(start.elapsed().as_secs_f64());
+            // Drive through the public API, timing its two parts.
+            let avatar = model.reconstruct(&image, &tm)?;
+            let d0 = Instant::now();
+            let frame = model.drive(&avatar, &verts, &tm, Noise::Fixed)?;
+            let drive_total = d0.elapsed().as_secs_f64();
+            let r0 = Instant::now();
+            let _fine = model.render(&frame.coarse, Noise::Fixed)?;
+            let render = r0.elapsed().as_secs_f64();
+            t.push((drive_total - render).max(0.0));
+            t.push(render);
+            t.push(drive_total);
+            if run > 0 {
+                for (k, v) in t.into_iter().enumerate() {
+                    times[k].push(v);
+                }
+            }
+            bar.inc(1);
+        }
+        Ok(())
+    })?;
+    bar.finish_and_clear();
+    println!(
+        "model {} ({threads} threads, median of {runs} runs after a warm-up)",
+        cfg.name
+    );
+    for (k, name) in names.iter().enumerate() {
+        println!("  {name:<22} {:>9.1} ms", 1e3 * median(&mut times[k]));
+    }
+    if let Some(mib) = peak_rss_mib() {
+        println!("  peak RSS               {mib:>9.0} MiB");
+    }
+    Ok(())
 }

@@ -3,6 +3,7 @@
 
 mod cmd_bench;
 mod cmd_flame;
+mod cmd_model;
 mod cmd_splat;
 
 use clap::{Parser, Subcommand};
@@ -27,6 +28,12 @@ enum Command {
     /// FLAME head model utilities.
     #[command(subcommand)]
     Flame(cmd_flame::FlameCmd),
+    /// Convert the release checkpoint (or any weights) to safetensors, checking every key.
+    Convert(cmd_model::ConvertArgs),
+    /// Write a complete checkpoint of seeded random weights in the release key layout.
+    InitWeights(cmd_model::InitWeightsArgs),
+    /// Run reconstruct + drive once and write every intermediate tensor (parity checks).
+    Dump(cmd_model::DumpArgs),
     /// Benchmarks of the hot paths on this machine.
     #[command(subcommand)]
     Bench(cmd_bench::BenchCmd),
@@ -38,6 +45,9 @@ fn main() {
         Command::Splat(args) => cmd_splat::run_splat(args),
         Command::ExampleScene(args) => cmd_splat::run_example_scene(args),
         Command::Flame(cmd) => cmd_flame::run(cmd),
+        Command::Convert(args) => cmd_model::run_convert(args),
+        Command::InitWeights(args) => cmd_model::run_init_weights(args),
+        Command::Dump(args) => cmd_model::run_dump(args),
         Command::Bench(cmd) => cmd_bench::run(cmd),
     };
     if let Err(err) = result {

@@ -1,0 +1,436 @@
+//! Weights on disk: the release checkpoint (`GAGAvatar.pt`, a torch zip pickle
+//! `{"model": state_dict, "meta_cfg": ...}`) and safetensors with the same keys; the expected key
+//! set of a configuration; seeded random weights; atomic safetensors writing.
+//!
+//! The expected keys are not a hand-kept list: the model is built once with a recording
+//! `VarBuilder` backend, so the loader asks for exactly what the modules ask for.
+
+use std::borrow::Cow;
+use std::collections::{BTreeMap, HashMap};
+use std::path::Path;
+use std::sync::Mutex;
+
+use candle_core::{DType, Device, Shape, Tensor};
+use candle_nn::var_builder::SimpleBackend;
+use candle_nn::VarBuilder;
+use rayon::prelude::*;
+
+use crate::config::ModelConfig;
+use crate::error::{NetError, Result};
+
+/// Keys of the release checkpoint that inference does not need (the frozen perceptual-loss
+/// networks). They are accepted, kept by `convert`, and ignored by the model.
+pub const IGNORED_PREFIXES: [&str; 1] = ["percep_loss."];
+/// Safetensors metadata key holding the model configuration as JSON.
+pub const CONFIG_METADATA_KEY: &str = "gagavatar.config";
+/// The release pickle nests the state dict under this key.
+const RELEASE_STATE_DICT: &str = "model.";
+
+/// A `VarBuilder` backend that records every requested (key, shape) and hands out broadcast
+/// zeros, so building a model costs no weight memory.
+#[derive(Default)]
+struct Recorder {
+    seen: Mutex<Vec<(String, Vec<usize>)>>,
+}
+
+impl SimpleBackend for Recorder {
+    fn get(
+        &self,
+        s: Shape,
+        name: &str,
+        _: candle_nn::Init,
+        dtype: DType,
+        dev: &Device,
+    ) -> candle_core::Result<Tensor> {
+        if let Ok(mut seen) = self.seen.lock() {
+            seen.push((name.to_string(), s.dims().to_vec()));
+        }
+        Tensor::zeros((), dtype, dev)?.broadcast_as(s)
+    }
+
+    fn get_unchecked(&self, name: &str, _: DType, _: &Device) -> candle_core::Result<Tensor> {
+        candle_core::bail!("the key recorder needs a shape for `{name}`")
+    }
+
+    fn contains_tensor(&self, _: &str) -> bool {
+        true
+    }
+}
+
+/// Every key the model with `cfg` asks for, with its shape, sorted by key.
+pub fn expected_keys(cfg: &ModelConfig) -> Result<BTreeMap<String, Vec<usize>>> {
+    cfg.validate().map_err(NetError::Config)?;
+    let rec = std::sync::Arc::new(Recorder::default());
+    struct Shared(std::sync::Arc<Recorder>);
+    impl SimpleBackend for Shared {
+        fn get(
+            &self,
+            s: Shape,
+            name: &str,
+            h: candle_nn::Init,
+            dtype: DType,
+            dev: &Device,
+        ) -> candle_core::Result<Tensor> {
+            self.0.get(s, name, h, dtype, dev)
+        }
+        fn get_unchecked(&self, n: &str, d: DType, dev: &Device) -> candle_core::Result<Tensor> {
+            self.0.get_unchecked(n, d, dev)
+        }
+        fn contains_tensor(&self, n: &str) -> bool {
+            self.0.contains_tensor(n)
+        }
+    }
+    let vb = VarBuilder::from_backend(Box::new(Shared(rec.clone())), DType::F32, Device::Cpu);
+    crate::model::GagAvatar::new(cfg, vb)?;
+    let seen = rec
+        .seen
+        .lock()
+        .map_err(|_| NetError::Config("key recorder poisoned".into()))?;
+    let mut out = BTreeMap::new();
+    for (k, s) in seen.iter() {
+        if let Some(prev) = out.insert(k.clone(), s.clone()) {
+            if &prev != s {
+                return Err(NetError::Config(format!(
+                    "modules ask for `{k}` with two shapes: {prev:?} and {s:?}"
+                )));
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Weights read from a file, plus the configuration stored with them if any.
+pub struct Weights {
+    pub tensors: HashMap<String, Tensor>,
+    /// From the safetensors metadata (`gagavatar.config`); `None` for the release `.pt`.
+    pub config: Option<ModelConfig>,
+}
+
+fn io_err(path: &Path, source: std::io::Error) -> NetError {
+    NetError::Io {
+        path: path.to_owned(),
+        source,
+    }
+}
+
+fn format_err(path: &Path, reason: impl std::fmt::Display) -> NetError {
+    NetError::Format {
+        path: path.to_owned(),
+        reason: reason.to_string(),
+    }
+}
+
+/// Reads a torch zip checkpoint (the release's `{"model": ..., "meta_cfg": ...}` or a bare state
+/// dict) or a safetensors file. The pickle is only parsed as data, never executed.
+pub fn read_weights(path: &Path) -> Result<Weights> {
+    use std::io::Read;
+    let mut head = [0u8; 4];
+    let n = std::fs::File::open(path)
+        .and_then(|mut f| f.read(&mut head))
+        .map_err(|e| io_err(path, e))?;
+    if n == 4 && &head == b"PK\x03\x04" {
+        return read_torch(path);
+    }
+    read_safetensors_file(path)
+}
+
+fn read_torch(path: &Path) -> Result<Weights> {
+    let map = gagavatar_flame::asset::read_tensor_file(path)?;
+    let nested = map.keys().any(|k| k.starts_with(RELEASE_STATE_DICT));
+    let mut tensors = HashMap::new();
+    for (key, raw) in map {
+        let key = if nested {
+            match key.strip_prefix(RELEASE_STATE_DICT) {
+                Some(k) => k.to_string(),
+                // `meta_cfg` and anything else beside the state dict.
+                None => continue,
+            }
+        } else {
+            key
+        };
+        let data = match raw.data {
+            gagavatar_flame::asset::RawData::Float(v) => v,
+            gagavatar_flame::asset::RawData::Int(_) => {
+                return Err(format_err(
+                    path,
+                    format!("`{key}` is an integer tensor; the model only has float weights"),
+                ))
+            }
+        };
+        let t = Tensor::from_vec(data, raw.shape, &Device::Cpu)?;
+        tensors.insert(key, t);
+    }
+    Ok(Weights {
+        tensors,
+        config: None,
+    })
+}
+
+fn read_safetensors_file(path: &Path) -> Result<Weights> {
+    let bytes = std::fs::read(path).map_err(|e| io_err(path, e))?;
+    let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes)
+        .map_err(|e| format_err(path, format!("neither a torch zip nor safetensors: {e}")))?;
+    let config = match meta
+        .metadata()
+        .as_ref()
+        .and_then(|m| m.get(CONFIG_METADATA_KEY))
+    {
+        Some(json) => Some(
+            serde_json::from_str::<ModelConfig>(json)
+                .map_err(|e| format_err(path, format!("bad `{CONFIG_METADATA_KEY}`: {e}")))?,
+        ),
+        None => None,
+    };
+    let st = safetensors::SafeTensors::deserialize(&bytes).map_err(|e| format_err(path, e))?;
+    let mut tensors = HashMap::new();
+    for (name, view) in st.tensors() {
+        let t = match view.dtype() {
+            safetensors::Dtype::F32 => {
+                Tensor::from_raw_buffer(view.data(), DType::F32, view.shape(), &Device::Cpu)?
+            }
+            safetensors::Dtype::F64 | safetensors::Dtype::F16 | safetensors::Dtype::BF16 => {
+                let dt = match view.dtype() {
+                    safetensors::Dtype::F64 => DType::F64,
+                    safetensors::Dtype::F16 => DType::F16,
+                    _ => DType::BF16,
+                };
+                Tensor::from_raw_buffer(view.data(), dt, view.shape(), &Device::Cpu)?
+                    .to_dtype(DType::F32)?
+            }
+            other => {
+                return Err(format_err(
+                    path,
+                    format!("`{name}` has dtype {other:?}; weights must be floating point"),
+                ))
+            }
+        };
+        let name = name
+            .strip_prefix(RELEASE_STATE_DICT)
+            .unwrap_or(&name)
+            .to_string();
+        tensors.insert(name, t);
+    }
+    Ok(Weights { tensors, config })
+}
+
+fn ignored(key: &str) -> bool {
+    IGNORED_PREFIXES.iter().any(|p| key.starts_with(p))
+}
+
+/// Compares `tensors` with what `cfg` expects: one error listing every missing, unexpected and
+/// misshapen key (ignored prefixes such as `percep_loss.` are allowed).
+pub fn check_keys(cfg: &ModelConfig, tensors: &HashMap<String, Tensor>) -> Result<()> {
+    let want = expected_keys(cfg)?;
+    let mut missing = Vec::new();
+    let mut shape = Vec::new();
+    for (k, s) in &want {
+        match tensors.get(k) {
+            None => missing.push(k.clone()),
+            Some(t) if t.dims() != s.as_slice() => {
+                shape.push(format!("{k} (expected {s:?}, found {:?})", t.dims()))
+            }
+            Some(_) => {}
+        }
+    }
+    let mut extra: Vec<String> = tensors
+        .keys()
+        .filter(|k| !want.contains_key(*k) && !ignored(k))
+        .cloned()
+        .collect();
+    extra.sort();
+    if missing.is_empty() && extra.is_empty() && shape.is_empty() {
+        return Ok(());
+    }
+    let list = |name: &str, v: &[String]| -> Option<String> {
+        const SHOW: usize = 12;
+        if v.is_empty() {
+            return None;
+        }
+        let mut s = format!("{} {name}: {}", v.len(), v[..v.len().min(SHOW)].join(", "));
+        if v.len() > SHOW {
+            s.push_str(&format!(", ... ({} more)", v.len() - SHOW));
+        }
+        Some(s)
+    };
+    let summary = [
+        list("missing", &missing),
+        list("unexpected", &extra),
+        list("misshapen", &shape),
+    ]
+    .into_iter()
+    .flatten()
+    .collect::<Vec<_>>()
+    .join("; ");
+    Err(NetError::Keys {
+        preset: cfg.name.clone(),
+        summary,
+    })
+}
+
+/// Splits a seed and a key into an independent stream, so one key's values do not depend on
+/// which other keys exist.
+fn key_seed(seed: u64, key: &str) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325 ^ seed.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    for b in key.bytes() {
+        h ^= b as u64;
+        h = h.wrapping_mul(0x0100_0000_01b3);
+    }
+    h
+}
+
+/// How a parameter is initialised, from its name and shape.
+fn init_rule(key: &str, shape: &[usize]) -> (f64, f64) {
+    // (mean, std) of a normal draw.
+    let last = key.rsplit('.').next().unwrap_or(key);
+    let numel: usize = shape.iter().product();
+    if key.contains("noises.noise") || key.ends_with("constant_input.weight") {
+        return (0.0, 1.0);
+    }
+    if key.ends_with("modulation.bias") {
+        // StyleGAN2 starts styles at 1 so modulation is the identity.
+        return (1.0, 0.05);
+    }
+    if key == "head_base" {
+        return (0.0, 0.5);
+    }
+    match last {
+        "cls_token" | "pos_embed" | "mask_token" => (0.0, 0.02),
+        "gamma" => (0.1, 0.02),
+        "bias" => (0.0, 0.02),
+        "weight" if shape.len() <= 1 && numel == 1 => (0.1, 0.0), // StyleConv noise strength
+        "weight" if shape.len() <= 1 => (1.0, 0.05),              // LayerNorm
+        "weight" => {
+            // He-style fan-in scaling: [out, in, k, k], [1, out, in, k, k] (modulated),
+            // [in, out, k, k] for the transposed convs (every output sees `in` inputs).
+            let fan_in = if key.contains("resize_layers.0.") || key.contains("resize_layers.1.") {
+                shape[0]
+            } else if shape.len() == 5 {
+                shape[2..].iter().product()
+            } else {
+                shape[1..].iter().product()
+            };
+            (0.0, (1.0 / fan_in.max(1) as f64).sqrt())
+        }
+        _ => (0.0, 0.02),
+    }
+}
+
+/// Seeded random weights for every key of `cfg`, with realistic magnitudes.
+pub fn init_weights(
+    cfg: &ModelConfig,
+    seed: u64,
+) -> Result<BTreeMap<String, (Vec<usize>, Vec<f32>)>> {
+    let keys = expected_keys(cfg)?;
+    let out: Vec<(String, (Vec<usize>, Vec<f32>))> = keys
+        .into_par_iter()
+        .map(|(k, shape)| {
+            let (mean, std) = init_rule(&k, &shape);
+            let n: usize = shape.iter().product();
+            let mut rng = gagavatar_splat::testscene::Rng::new(key_seed(seed, &k));
+            let v = (0..n).map(|_| (mean + std * rng.normal()) as f32).collect();
+            (k, (shape, v))
+        })
+        .collect();
+    Ok(out.into_iter().collect())
+}
+
+/// A float32 tensor view for the safetensors writer.
+struct F32View<'a> {
+    shape: &'a [usize],
+    data: Cow<'a, [f32]>,
+}
+
+impl safetensors::View for &F32View<'_> {
+    fn dtype(&self) -> safetensors::Dtype {
+        safetensors::Dtype::F32
+    }
+    fn shape(&self) -> &[usize] {
+        self.shape
+    }
+    fn data(&self) -> Cow<'_, [u8]> {
+        Cow::Owned(self.data.iter().flat_map(|x| x.to_le_bytes()).collect())
+    }
+    fn data_len(&self) -> usize {
+        self.data.len() * 4
+    }
+}
+
+/// Writes f32 tensors as safetensors atomically (temp file + rename), with `config` in the
+/// metadata when given.
+pub fn write_safetensors<'a>(
+    path: &Path,
+    tensors: impl IntoIterator<Item = (String, &'a [usize], Cow<'a, [f32]>)>,
+    config: Option<&ModelConfig>,
+) -> Result<()> {
+    let views: Vec<(String, F32View)> = tensors
+        .into_iter()
+        .map(|(k, shape, data)| (k, F32View { shape, data }))
+        .collect();
+    let mut meta = HashMap::new();
+    meta.insert("format".to_string(), "pt".to_string());
+    if let Some(cfg) = config {
+        let json = serde_json::to_string(cfg).map_err(|e| NetError::Config(e.to_string()))?;
+        meta.insert(CONFIG_METADATA_KEY.to_string(), json);
+    }
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let name = path
+        .file_name()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "out".into());
+    let tmp = dir.join(format!(".{name}.tmp{}", std::process::id()));
+    let refs: Vec<(&str, &F32View)> = views.iter().map(|(k, v)| (k.as_str(), v)).collect();
+    let result = safetensors::tensor::serialize_to_file(refs, Some(meta), &tmp)
+        .map_err(|e| format_err(path, e))
+        .and_then(|_| std::fs::rename(&tmp, path).map_err(|e| io_err(path, e)));
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+/// Writes candle tensors (converted to f32) as safetensors atomically.
+pub fn write_tensors(
+    path: &Path,
+    tensors: &BTreeMap<String, Tensor>,
+    config: Option<&ModelConfig>,
+) -> Result<()> {
+    let mut owned = Vec::with_capacity(tensors.len());
+    for (k, t) in tensors {
+        let v: Vec<f32> = t.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
+        owned.push((k.clone(), t.dims().to_vec(), v));
+    }
+    write_safetensors(
+        path,
+        owned
+            .iter()
+            .map(|(k, s, v)| (k.clone(), s.as_slice(), Cow::Borrowed(v.as_slice()))),
+        config,
+    )
+}
+
+/// Which configuration a weights file is for: an explicit choice wins, then the file's
+/// metadata, then the release architecture (the `.pt` carries none we can use).
+pub fn resolve_config(weights: &Weights, explicit: Option<&ModelConfig>) -> ModelConfig {
+    explicit
+        .cloned()
+        .or_else(|| weights.config.clone())
+        .unwrap_or_else(ModelConfig::release)
+}
+
+/// Reads weights, checks them against the configuration and builds the model.
+pub fn load_model(
+    path: &Path,
+    explicit: Option<&ModelConfig>,
+    device: &Device,
+) -> Result<crate::model::GagAvatar> {
+    let weights = read_weights(path)?;
+    let cfg = resolve_config(&weights, explicit);
+    check_keys(&cfg, &weights.tensors)?;
+    let mut tensors = weights.tensors;
+    tensors.retain(|k, _| !ignored(k));
+    let vb = VarBuilder::from_tensors(tensors, DType::F32, device);
+    crate::model::GagAvatar::new(&cfg, vb)
+}

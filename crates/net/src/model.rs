@@ -1,0 +1,279 @@
+//! The whole network and its two phases (spec section 1): `reconstruct` (once per source
+//! image) and `drive` (per frame).
+
+use candle_core::{DType, Tensor};
+use candle_nn::VarBuilder;
+use gagavatar_splat::{splat, Camera, Gaussians};
+
+use crate::config::{ModelConfig, FOCAL};
+use crate::dino::Dinov2;
+use crate::dpt::DptHead;
+use crate::error::{NetError, Result};
+use crate::gs_generator::{
+    concat_attributes, ConvGsGenerator, GaussianAttributes, LinearGsGenerator,
+};
+use crate::plane::{dir_encoding, point_plane};
+use crate::style_unet::{Noise, StyleUNet};
+
+/// The GAGAvatar network; parameter names are the release checkpoint's keys.
+#[derive(Debug, Clone)]
+pub struct GagAvatar {
+    pub cfg: ModelConfig,
+    pub dino: Dinov2,
+    pub dpt: DptHead,
+    pub head_base: Tensor,
+    pub gen_g: LinearGsGenerator,
+    pub gen_l0: ConvGsGenerator,
+    pub gen_l1: ConvGsGenerator,
+    pub renderer: StyleUNet,
+}
+
+/// A reconstructed head: every Gaussian attribute except the expression Gaussians' positions,
+/// which each frame supplies. Attributes are `[B, N, k]` in the order
+/// `[expression (V), l0 (S*S), l1 (S*S)]`.
+#[derive(Debug, Clone)]
+pub struct Avatar {
+    /// Positions of the two lifted point sets, `[B, 2 S*S, 3]`.
+    pub lifted_xyz: Tensor,
+    pub colors: Tensor,
+    pub opacities: Tensor,
+    pub scales: Tensor,
+    pub rotations: Tensor,
+}
+
+impl Avatar {
+    pub fn batch(&self) -> usize {
+        self.colors.dims().first().copied().unwrap_or(0)
+    }
+
+    /// All positions for the given expression-vertex positions `[B, V, 3]`.
+    pub fn positions(&self, vertices: &Tensor) -> Result<Tensor> {
+        Ok(Tensor::cat(&[vertices, &self.lifted_xyz], 1)?)
+    }
+}
+
+/// Intermediate values of `reconstruct`, for parity dumps.
+#[derive(Debug, Clone)]
+pub struct ReconstructTrace {
+    pub input_518: Tensor,
+    pub dino: [Tensor; 4],
+    pub f_id: Tensor,
+    pub f_local: Tensor,
+    pub plane_points: Tensor,
+    pub plane_dir: Tensor,
+    pub dir_encoding: Tensor,
+}
+
+/// One driven frame.
+#[derive(Debug, Clone)]
+pub struct DrivenFrame {
+    /// Splatted features `[B, C, H, W]`; channels 0..3 are the coarse RGB.
+    pub coarse: Tensor,
+    /// The neural renderer's RGB `[B, 3, H, W]` in [0, 1].
+    pub fine: Tensor,
+}
+
+fn input_err(name: &str, reason: impl Into<String>) -> NetError {
+    NetError::Input {
+        name: name.to_string(),
+        reason: reason.into(),
+    }
+}
+
+/// Errors on NaN or infinite values: they would silently poison every Gaussian.
+fn check_finite(t: &Tensor, name: &str) -> Result<()> {
+    let s = t
+        .to_dtype(DType::F64)?
+        .abs()?
+        .flatten_all()?
+        .max(0)?
+        .to_scalar::<f64>()?;
+    if s.is_finite() {
+        Ok(())
+    } else {
+        Err(input_err(name, "contains NaN or infinite values"))
+    }
+}
+
+fn check_transform(t: &Tensor, name: &str, batch: Option<usize>) -> Result<usize> {
+    match t.dims() {
+        [b, 3, 4] if *b > 0 && batch.is_none_or(|want| want == *b) => {
+            check_finite(t, name)?;
+            Ok(*b)
+        }
+        other => Err(input_err(
+            name,
+            format!(
+                "expected [{}, 3, 4], got {other:?}",
+                batch.map_or("B".to_string(), |b| b.to_string())
+            ),
+        )),
+    }
+}
+
+/// Cameras of `[B, 3, 4]` transforms at the model resolution.
+pub fn cameras(transform: &Tensor, size: usize) -> Result<Vec<Camera>> {
+    let m: Vec<Vec<Vec<f64>>> = transform.to_dtype(DType::F64)?.to_vec3()?;
+    m.iter()
+        .map(|tm| {
+            let mut a = [[0.0; 4]; 3];
+            for (r, row) in tm.iter().enumerate() {
+                a[r].copy_from_slice(row);
+            }
+            Ok(Camera::from_transform_matrix(&a, FOCAL, size, size)?)
+        })
+        .collect()
+}
+
+impl GagAvatar {
+    pub fn new(cfg: &ModelConfig, vb: VarBuilder) -> Result<Self> {
+        cfg.validate().map_err(NetError::Config)?;
+        Ok(Self {
+            cfg: cfg.clone(),
+            dino: Dinov2::new(cfg, vb.pp("base_model").pp("dino_model"))?,
+            dpt: DptHead::new(cfg, vb.pp("base_model"))?,
+            head_base: vb.get((cfg.n_vertices, cfg.head_base_dim), "head_base")?,
+            gen_g: LinearGsGenerator::new(cfg, vb.pp("gs_generator_g"))?,
+            gen_l0: ConvGsGenerator::new(cfg, vb.pp("gs_generator_l0"))?,
+            gen_l1: ConvGsGenerator::new(cfg, vb.pp("gs_generator_l1"))?,
+            renderer: StyleUNet::new(cfg, vb.pp("upsampler"))?,
+        })
+    }
+
+    /// Source image `[B, 3, H, W]` in [0, 1] (H = W = image_size) and its camera `[B, 3, 4]`
+    /// -> the avatar.
+    pub fn reconstruct(&self, image: &Tensor, transform: &Tensor) -> Result<Avatar> {
+        Ok(self.reconstruct_traced(image, transform)?.0)
+    }
+
+    /// `reconstruct`, also returning the intermediate values.
+    pub fn reconstruct_traced(
+        &self,
+        image: &Tensor,
+        transform: &Tensor,
+    ) -> Result<(Avatar, ReconstructTrace)> {
+        let size = self.cfg.image_size;
+        let b = match image.dims() {
+            [b, 3, h, w] if *b > 0 && *h == size && *w == size => *b,
+            other => {
+                return Err(input_err(
+                    "source image",
+                    format!("expected [B, 3, {size}, {size}], got {other:?}"),
+                ))
+            }
+        };
+        check_finite(image, "source image")?;
+        check_transform(transform, "source transform", Some(b))?;
+        let dtype = self.head_base.dtype();
+        let image = image.to_dtype(dtype)?;
+        let transform = transform.to_dtype(dtype)?;
+
+        let input_518 = crate::dino::preprocess(&image, &self.cfg)?;
+        let dino = self.dino.forward(&input_518)?;
+        let f_id = crate::dino::f_id(&dino[3])?;
+        let f_local = self.dpt.forward(&dino, &input_518)?;
+
+        let s = self.cfg.plane_size();
+        let (plane_points, plane_dir) = point_plane(&transform, s, FOCAL)?;
+        let enc = dir_encoding(&plane_dir)?;
+
+        let expr = self.gen_g.forward(&self.head_base, &f_id, &enc)?;
+        let l0 = self.gen_l0.forward(&f_local, &enc)?;
+        let l1 = self.gen_l1.forward(&f_local, &enc)?;
+        let dir = plane_dir.unsqueeze(1)?;
+        let xyz0 = (&plane_points + l0.distance.broadcast_mul(&dir)?)?;
+        let xyz1 = (&plane_points - l1.distance.broadcast_mul(&dir)?)?;
+        let GaussianAttributes {
+            colors,
+            opacities,
+            scales,
+            rotations,
+        } = concat_attributes(&[&expr, &l0.attrs, &l1.attrs])?;
+        let avatar = Avatar {
+            lifted_xyz: Tensor::cat(&[xyz0, xyz1], 1)?,
+            colors,
+            opacities,
+            scales,
+            rotations,
+        };
+        let trace = ReconstructTrace {
+            input_518,
+            dino,
+            f_id,
+            f_local,
+            plane_points,
+            plane_dir,
+            dir_encoding: enc,
+        };
+        Ok((avatar, trace))
+    }
+
+    /// Renders the avatar with target FLAME vertices `[B, V, 3]` (already scaled by 5) from
+    /// target cameras `[B, 3, 4]`. An avatar of batch 1 drives any number of frames.
+    pub fn drive(
+        &self,
+        avatar: &Avatar,
+        vertices: &Tensor,
+        transform: &Tensor,
+        noise: Noise,
+    ) -> Result<DrivenFrame> {
+        let v = self.cfg.n_vertices;
+        let b = match vertices.dims() {
+            [b, n, 3] if *b > 0 && *n == v => *b,
+            other => {
+                return Err(input_err(
+                    "target vertices",
+                    format!("expected [B, {v}, 3], got {other:?}"),
+                ))
+            }
+        };
+        check_finite(vertices, "target vertices")?;
+        check_transform(transform, "target transform", Some(b))?;
+        let ab = avatar.batch();
+        if ab != b && ab != 1 {
+            return Err(input_err(
+                "avatar",
+                format!("batch {ab} does not match {b} frames (use an avatar of batch 1 or {b})"),
+            ));
+        }
+        let dtype = avatar.colors.dtype();
+        let expand = |t: &Tensor| -> Result<Tensor> {
+            Ok(if ab == b {
+                t.clone()
+            } else {
+                let mut d = t.dims().to_vec();
+                d[0] = b;
+                t.broadcast_as(d)?.contiguous()?
+            })
+        };
+        let lifted = expand(&avatar.lifted_xyz)?;
+        let means = Tensor::cat(&[&vertices.to_dtype(dtype)?, &lifted], 1)?.contiguous()?;
+        let features = expand(&avatar.colors)?.contiguous()?;
+        let opacities = expand(&avatar.opacities)?.contiguous()?;
+        let scales = expand(&avatar.scales)?.contiguous()?;
+        let rotations = expand(&avatar.rotations)?.contiguous()?;
+        let cams = cameras(transform, self.cfg.image_size)?;
+        let background = Tensor::zeros(self.cfg.color_dim, dtype, features.device())?;
+        let out = splat(
+            &Gaussians {
+                means: &means,
+                features: &features,
+                opacities: &opacities,
+                scales: &scales,
+                rotations: &rotations,
+            },
+            &background,
+            &cams,
+        )?;
+        let fine = self.renderer.forward(&out.image, noise)?;
+        Ok(DrivenFrame {
+            coarse: out.image,
+            fine,
+        })
+    }
+
+    /// The neural renderer alone (coarse `[B, C, H, W]` -> fine RGB).
+    pub fn render(&self, coarse: &Tensor, noise: Noise) -> Result<Tensor> {
+        Ok(self.renderer.forward(coarse, noise)?)
+    }
+}
