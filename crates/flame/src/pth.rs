@@ -1,28 +1,54 @@
 //! Reading torch zip checkpoints (`torch.save` since PyTorch 1.6) whose pickle is a tree of
-//! dicts with tensor leaves, flattened to `a.b.c` keys.
+//! containers with tensor leaves, flattened to `a.b.c` keys.
 //!
-//! candle's `read_all`/`PthTensors` only look one dict level deep (optionally under one key) and
-//! silently skip storages they do not know (`IntStorage`, ...), which would turn a perfectly
-//! readable int32 `f` into a confusing "missing key". So this module walks the tree itself. It
-//! uses candle's pickle `Stack`, which only builds a data tree (classes are recorded by name,
-//! never imported or called): nothing in the file is executed.
+//! The pickle is parsed by our own data-only interpreter (`crate::pickle`): classes are recorded
+//! by name, never imported or called, so nothing in the file is executed. That also means
+//! objects of classes we have never heard of (a release's own config class, `EasyDict`, ...) are
+//! kept as data instead of stopping the parse, and the walk below can look inside them.
+//!
+//! What the walk descends into, and the key each child gets:
+//! * dicts, and the SETITEMS items of objects (`OrderedDict`, dict subclasses): the dict key
+//!   (str or int keys; other keys are skipped). A key repeated in one dict takes its last value.
+//! * lists and tuples, and the APPENDS items of objects (list subclasses): the index.
+//! * an object's BUILD state when it is a dict (its attributes) or a `(dict, slots dict)` tuple.
+//! * the content of a dict / list subclass pickled with protocol 0 or 1, which is the third
+//!   argument of `copyreg._reconstructor(cls, base, content)`.
+//!   `EasyDict`-like objects hold the same value as item and attribute; it is read once.
+//!
+//! It does not descend into the arguments of REDUCE / NEWOBJ calls of unknown callables (what
+//! the callable makes of them is unknown), sets, or other values. Every tensor found is
+//! collected, including tensors in config objects (`{"model": sd, "meta_cfg": cfg}` yields the
+//! `model.*` tensors plus any `meta_cfg.*` tensors); callers pick the prefix they want. A
+//! reference cycle is not followed. Two *different* tensors flattening to the same key are an
+//! error, as is a tensor of a kind or storage type we cannot read, wherever it sits.
+//!
+//! candle's own `read_all`/`PthTensors` only look one dict level deep and silently skip storages
+//! they do not know (`IntStorage`, ...), which would turn a readable int32 `f` into a confusing
+//! "missing key"; its pickle `Stack` stops at the first object of an unknown class.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::io::Read;
 use std::path::Path;
 
-use candle_core::pickle::{Object, Stack};
+use candle_core::DType;
 
 use crate::asset::{RawTensor, TensorMap};
 use crate::error::{FlameError, Result};
+use crate::pickle::{self, Id, Pickle, Value};
 
-/// Largest pickle accepted. The FLAME pickle is a few kilobytes; a limit keeps a hostile file
-/// from making the parser build an enormous object tree.
+/// Largest pickle accepted. The FLAME pickle is a few kilobytes and a state dict's takes some
+/// tens of bytes per tensor; a limit keeps a hostile file from making the parser build an
+/// enormous object tree.
 const MAX_PICKLE_BYTES: u64 = 64 << 20;
 /// Largest tensor accepted (elements); FLAME's biggest (shapedirs) has 6.0 M.
 const MAX_TENSOR_ELEMENTS: usize = 1 << 28;
-/// Nesting depth for dicts; the release uses 2.
-const MAX_DEPTH: usize = 16;
+/// Container nesting followed; the release nests 3 deep, configs a few more.
+const MAX_DEPTH: usize = 32;
+/// Values visited by the walk: shared sub-trees are walked once per path, so a small hostile
+/// pickle could otherwise describe an exponentially large tree.
+const MAX_VISITS: usize = 1 << 22;
+/// `_rebuild_parameter` / `_rebuild_from_type_v2` wrappers followed around one tensor.
+const MAX_REBUILD_NESTING: usize = 8;
 
 fn archive_err(path: &Path, reason: impl std::fmt::Display) -> FlameError {
     FlameError::Archive {
@@ -39,8 +65,7 @@ fn pickle_err(path: &Path, reason: impl std::fmt::Display) -> FlameError {
 }
 
 /// Storage class name -> (candle dtype, bytes per element).
-fn storage_dtype(class_name: &str) -> Option<(candle_core::DType, usize)> {
-    use candle_core::DType;
+fn storage_dtype(class_name: &str) -> Option<(DType, usize)> {
     Some(match class_name {
         "FloatStorage" => (DType::F32, 4),
         "DoubleStorage" => (DType::F64, 8),
@@ -50,11 +75,14 @@ fn storage_dtype(class_name: &str) -> Option<(candle_core::DType, usize)> {
         "IntStorage" => (DType::I32, 4),
         "ShortStorage" => (DType::I16, 2),
         "ByteStorage" => (DType::U8, 1),
+        // torch stores bools as one byte, 0 or 1.
+        "BoolStorage" => (DType::U8, 1),
         _ => return None,
     })
 }
 
 /// A tensor leaf as described by the pickle, before its bytes are read.
+#[derive(Debug, Clone, PartialEq)]
 struct TensorRef {
     storage_key: String,
     class_name: String,
@@ -64,87 +92,124 @@ struct TensorRef {
     stride: Vec<usize>,
 }
 
-fn as_usize(obj: &Object) -> Option<usize> {
-    match obj {
-        Object::Int(v) if *v >= 0 => Some(*v as usize),
-        Object::Long(v) if *v >= 0 => usize::try_from(*v).ok(),
+fn as_usize(v: &Value) -> Option<usize> {
+    match v {
+        Value::Int(i) if *i >= 0 => usize::try_from(*i).ok(),
         _ => None,
     }
 }
 
-fn as_usize_tuple(obj: &Object) -> Option<Vec<usize>> {
-    match obj {
-        Object::Tuple(items) | Object::List(items) => items.iter().map(as_usize).collect(),
+fn as_usize_tuple(p: &Pickle, id: Id) -> Option<Vec<usize>> {
+    match p.get(id) {
+        Value::Tuple(items) | Value::List(items) => {
+            items.iter().map(|&i| as_usize(p.get(i))).collect()
+        }
         _ => None,
     }
 }
 
-/// Recognises `torch._utils._rebuild_tensor_v2(storage, offset, size, stride, ...)`, possibly
-/// wrapped in `_rebuild_parameter` or `torch._tensor._rebuild_from_type_v2`.
-fn tensor_ref(obj: &Object) -> std::result::Result<Option<TensorRef>, String> {
-    let Object::Reduce { callable, args } = obj else {
+/// Recognises a tensor: an object made by `torch._utils._rebuild_tensor_v2(storage, offset,
+/// size, stride, ...)`, possibly wrapped in `_rebuild_parameter` or
+/// `torch._tensor._rebuild_from_type_v2`.
+fn tensor_ref(p: &Pickle, id: Id) -> std::result::Result<Option<TensorRef>, String> {
+    match p.get(id) {
+        Value::Object(o) => rebuild(p, o.callable, o.args, 0),
+        _ => Ok(None),
+    }
+}
+
+/// What `callable(*args)` makes, if it is a tensor.
+fn rebuild(
+    p: &Pickle,
+    callable: Id,
+    args: Id,
+    nesting: usize,
+) -> std::result::Result<Option<TensorRef>, String> {
+    let Some((module, name)) = p.global(callable) else {
         return Ok(None);
     };
-    let Object::Class {
-        module_name,
-        class_name,
-    } = callable.as_ref()
-    else {
+    let Value::Tuple(args) = p.get(args) else {
         return Ok(None);
     };
-    let args = match args.as_ref() {
-        Object::Tuple(a) => a,
-        _ => return Ok(None),
-    };
-    match (module_name.as_str(), class_name.as_str()) {
+    if nesting > MAX_REBUILD_NESTING {
+        return Err("tensor rebuild calls nested too deeply".into());
+    }
+    match (module, name) {
         ("torch._utils", "_rebuild_parameter")
         | ("torch._utils", "_rebuild_parameter_with_state") => {
-            return match args.first() {
-                Some(inner) => tensor_ref(inner),
-                None => Err("empty _rebuild_parameter".into()),
+            let Some(&inner) = args.first() else {
+                return Err("empty _rebuild_parameter".into());
+            };
+            return match p.get(inner) {
+                Value::Object(o) => match rebuild(p, o.callable, o.args, nesting + 1)? {
+                    Some(t) => Ok(Some(t)),
+                    None => Err(format!(
+                        "_rebuild_parameter of a non-tensor {}",
+                        p.describe(inner)
+                    )),
+                },
+                _ => Err(format!(
+                    "_rebuild_parameter of a non-tensor {}",
+                    p.describe(inner)
+                )),
             };
         }
         ("torch._tensor", "_rebuild_from_type_v2") => {
-            // (func, type, args, state): rebuild `func(*args)`.
+            // (func, type, args, state): the tensor is `func(*args)`.
             return match (args.first(), args.get(2)) {
-                (Some(func), Some(inner_args)) => tensor_ref(&Object::Reduce {
-                    callable: Box::new(func.clone()),
-                    args: Box::new(inner_args.clone()),
-                }),
+                (Some(&func), Some(&inner_args)) => {
+                    match rebuild(p, func, inner_args, nesting + 1)? {
+                        Some(t) => Ok(Some(t)),
+                        None => Err(format!(
+                            "_rebuild_from_type_v2 of {}, which is not a supported tensor",
+                            p.describe(func)
+                        )),
+                    }
+                }
                 _ => Err("malformed _rebuild_from_type_v2".into()),
             };
         }
         ("torch._utils", "_rebuild_tensor_v2") | ("torch._utils", "_rebuild_tensor") => {}
+        ("torch._utils", other) if other.starts_with("_rebuild_") => {
+            return Err(format!(
+                "tensors made by torch._utils.{other} (quantized, sparse, meta, ...) are not supported"
+            ));
+        }
         _ => return Ok(None),
     }
     if args.len() < 4 {
         return Err("_rebuild_tensor_v2 with fewer than 4 arguments".into());
     }
-    let Object::PersistentLoad(pid) = &args[0] else {
+    let Value::PersistentId(pid) = p.get(args[0]) else {
         return Err("tensor storage is not a persistent reference".into());
     };
-    let pid = match pid.as_ref() {
-        Object::Tuple(p) if p.len() >= 5 => p,
+    let pid = match p.get(*pid) {
+        Value::Tuple(t) if t.len() >= 5 => t,
         _ => return Err("malformed storage reference".into()),
     };
-    let storage_class = match &pid[1] {
-        Object::Class { class_name, .. } => class_name.clone(),
-        other => return Err(format!("storage type is not a class: {other:?}")),
+    let class_name = match p.global(pid[1]) {
+        Some((_, class)) => class.to_owned(),
+        None => {
+            return Err(format!(
+                "storage type is not a class: {}",
+                p.describe(pid[1])
+            ))
+        }
     };
-    let storage_key = match &pid[2] {
-        Object::Unicode(s) => s.clone(),
+    let storage_key = match p.get(pid[2]) {
+        Value::Str(s) => s.clone(),
         _ => return Err("storage key is not a string".into()),
     };
-    let storage_numel = as_usize(&pid[4]).ok_or("storage size is not an integer")?;
-    let offset = as_usize(&args[1]).ok_or("storage offset is not an integer")?;
-    let size = as_usize_tuple(&args[2]).ok_or("tensor size is not a tuple of integers")?;
-    let stride = as_usize_tuple(&args[3]).ok_or("tensor stride is not a tuple of integers")?;
+    let storage_numel = as_usize(p.get(pid[4])).ok_or("storage size is not an integer")?;
+    let offset = as_usize(p.get(args[1])).ok_or("storage offset is not an integer")?;
+    let size = as_usize_tuple(p, args[2]).ok_or("tensor size is not a tuple of integers")?;
+    let stride = as_usize_tuple(p, args[3]).ok_or("tensor stride is not a tuple of integers")?;
     if size.len() != stride.len() {
         return Err("size and stride ranks differ".into());
     }
     Ok(Some(TensorRef {
         storage_key,
-        class_name: storage_class,
+        class_name,
         storage_numel,
         offset,
         size,
@@ -152,46 +217,148 @@ fn tensor_ref(obj: &Object) -> std::result::Result<Option<TensorRef>, String> {
     }))
 }
 
-/// Walks nested dicts, collecting tensor leaves under dotted keys. Non-tensor leaves (numbers,
-/// strings, configs) are ignored: they are not part of what we load.
-fn collect(
-    obj: &Object,
-    prefix: &str,
-    depth: usize,
-    out: &mut Vec<(String, TensorRef)>,
-) -> std::result::Result<(), String> {
-    if depth > MAX_DEPTH {
-        return Err("dicts nested too deeply".into());
-    }
-    match obj {
-        Object::Dict(items) => {
-            for (k, v) in items {
-                let key = match k {
-                    Object::Unicode(s) => s.clone(),
-                    Object::Int(i) => i.to_string(),
-                    Object::Long(i) => i.to_string(),
-                    _ => continue,
-                };
-                let full = if prefix.is_empty() {
-                    key
-                } else {
-                    format!("{prefix}.{key}")
-                };
-                collect(v, &full, depth + 1, out)?;
-            }
-            Ok(())
+/// Collects tensor leaves under dotted keys (see the module docs for what is descended into).
+struct Walk<'p> {
+    p: &'p Pickle,
+    out: BTreeMap<String, TensorRef>,
+    /// Containers on the current path, to stop at cycles.
+    path: Vec<Id>,
+    visits: usize,
+}
+
+impl<'p> Walk<'p> {
+    fn walk(&mut self, id: Id, key: &str, depth: usize) -> std::result::Result<(), String> {
+        self.visits += 1;
+        if self.visits > MAX_VISITS {
+            return Err(format!(
+                "the pickle's containers reach more than {MAX_VISITS} values"
+            ));
         }
-        other => {
-            if let Some(t) = tensor_ref(other).map_err(|e| format!("`{prefix}`: {e}"))? {
-                out.push((prefix.to_owned(), t));
+        if let Some(t) = tensor_ref(self.p, id).map_err(|e| format!("`{key}`: {e}"))? {
+            return match self.out.get(key) {
+                Some(prev) if *prev != t => {
+                    Err(format!("two different tensors flatten to the key `{key}`"))
+                }
+                Some(_) => Ok(()),
+                None => {
+                    self.out.insert(key.to_owned(), t);
+                    Ok(())
+                }
+            };
+        }
+        if self.path.contains(&id) {
+            return Ok(());
+        }
+        let children = self.children(id);
+        if children.is_empty() {
+            return Ok(());
+        }
+        if depth >= MAX_DEPTH {
+            return Err(format!(
+                "`{key}`: containers nested more than {MAX_DEPTH} deep"
+            ));
+        }
+        self.path.push(id);
+        for (k, child) in children {
+            let full = if key.is_empty() {
+                k
+            } else {
+                format!("{key}.{k}")
+            };
+            self.walk(child, &full, depth + 1)?;
+        }
+        self.path.pop();
+        Ok(())
+    }
+
+    /// Named children of a container, without exact (key, value) repeats.
+    fn children(&self, id: Id) -> Vec<(String, Id)> {
+        let p = self.p;
+        let mut out: Vec<(String, Id)> = Vec::new();
+        match p.get(id) {
+            Value::Dict(entries) => dict_children(p, entries, &mut out),
+            Value::List(v) | Value::Tuple(v) => indexed_children(v, &mut out),
+            Value::Object(o) => {
+                // Protocols 0-1 pickle a dict / list subclass as
+                // `copyreg._reconstructor(cls, base, items)`: the third argument is its content.
+                if let (Some(("copyreg" | "copy_reg", "_reconstructor")), Value::Tuple(args)) =
+                    (p.global(o.callable), p.get(o.args))
+                {
+                    match args.get(2).map(|&a| p.get(a)) {
+                        Some(Value::Dict(items)) => dict_children(p, items, &mut out),
+                        Some(Value::List(elems)) => indexed_children(elems, &mut out),
+                        _ => {}
+                    }
+                }
+                dict_children(p, &o.items, &mut out);
+                indexed_children(&o.elems, &mut out);
+                if let Some(state) = o.state {
+                    match p.get(state) {
+                        Value::Dict(attrs) => dict_children(p, attrs, &mut out),
+                        // `__slots__` objects: (instance dict or None, slots dict).
+                        Value::Tuple(t) if t.len() == 2 => {
+                            for &part in t {
+                                if let Value::Dict(attrs) = p.get(part) {
+                                    dict_children(p, attrs, &mut out);
+                                }
+                            }
+                        }
+                        _ => {}
+                    }
+                }
             }
-            Ok(())
+            _ => {}
+        }
+        let mut seen = HashSet::new();
+        out.retain(|(k, v)| seen.insert((k.clone(), *v)));
+        out
+    }
+}
+
+/// Dict entries with str / int keys; a repeated key keeps its last value (Python assignment).
+fn dict_children(p: &Pickle, entries: &[(Id, Id)], out: &mut Vec<(String, Id)>) {
+    // The key's type is part of its identity: `1` and `"1"` are different Python keys.
+    let mut index: HashMap<(bool, String), usize> = HashMap::new();
+    for &(k, v) in entries {
+        let key = match p.get(k) {
+            Value::Str(s) => (true, s.clone()),
+            Value::Int(i) => (false, i.to_string()),
+            Value::BigInt(s) => (false, s.clone()),
+            _ => continue,
+        };
+        match index.get(&key) {
+            Some(&at) => out[at].1 = v,
+            None => {
+                index.insert(key.clone(), out.len());
+                out.push((key.1, v));
+            }
         }
     }
 }
 
+fn indexed_children(elems: &[Id], out: &mut Vec<(String, Id)>) {
+    out.extend(elems.iter().enumerate().map(|(i, &v)| (i.to_string(), v)));
+}
+
+/// A tensor read from the archive: its bytes in row-major order, in the file's dtype.
+struct RawEntry {
+    key: String,
+    dtype: DType,
+    shape: Vec<usize>,
+    bytes: Vec<u8>,
+}
+
 /// Loads every tensor of a torch zip checkpoint under its dotted key.
 pub fn read_torch_zip(path: &Path) -> Result<TensorMap> {
+    let mut out = TensorMap::new();
+    for e in read_torch_zip_raw(path)? {
+        let raw = RawTensor::from_bytes(&e.key, e.dtype, e.shape, &e.bytes)?;
+        out.insert(e.key, raw);
+    }
+    Ok(out)
+}
+
+fn read_torch_zip_raw(path: &Path) -> Result<Vec<RawEntry>> {
     let file = std::fs::File::open(path).map_err(|source| FlameError::Io {
         path: path.to_owned(),
         source,
@@ -218,7 +385,25 @@ pub fn read_torch_zip(path: &Path) -> Result<TensorMap> {
     };
     let prefix = pkl_name.trim_end_matches("data.pkl").to_owned();
 
-    let obj = {
+    // Storages are raw machine words; torch writes the byte order beside them.
+    if let Ok(entry) = zip.by_name(&format!("{prefix}byteorder")) {
+        let mut order = String::new();
+        entry
+            .take(16)
+            .read_to_string(&mut order)
+            .map_err(|e| archive_err(path, format!("reading byteorder: {e}")))?;
+        if order.trim() != "little" {
+            return Err(archive_err(
+                path,
+                format!(
+                    "storages are {:?}-endian; only little-endian is supported",
+                    order.trim()
+                ),
+            ));
+        }
+    }
+
+    let parsed = {
         let entry = zip.by_name(&pkl_name).map_err(|e| archive_err(path, e))?;
         let mut bytes = Vec::new();
         entry
@@ -228,23 +413,25 @@ pub fn read_torch_zip(path: &Path) -> Result<TensorMap> {
         if bytes.len() as u64 > MAX_PICKLE_BYTES {
             return Err(pickle_err(path, "data.pkl larger than 64 MiB"));
         }
-        let mut stack = Stack::empty();
-        stack
-            .read_loop(&mut bytes.as_slice())
-            .map_err(|e| pickle_err(path, e))?;
-        stack.finalize().map_err(|e| pickle_err(path, e))?
+        pickle::parse(&bytes).map_err(|e| pickle_err(path, format!("{pkl_name} {e}")))?
     };
 
-    let mut refs = Vec::new();
-    collect(&obj, "", 0, &mut refs).map_err(|e| pickle_err(path, e))?;
+    let mut walk = Walk {
+        p: &parsed,
+        out: BTreeMap::new(),
+        path: Vec::new(),
+        visits: 0,
+    };
+    walk.walk(parsed.root(), "", 0)
+        .map_err(|e| pickle_err(path, e))?;
 
     // Storages are read once each: several tensors may be views of one storage.
     let mut storages: HashMap<String, Vec<u8>> = HashMap::new();
-    let mut out = TensorMap::new();
-    for (key, t) in refs {
+    let mut out = Vec::with_capacity(walk.out.len());
+    for (key, t) in walk.out {
         let (dtype, elem) = storage_dtype(&t.class_name).ok_or_else(|| FlameError::DType {
             key: key.clone(),
-            expected: "a float or integer storage",
+            expected: "a float, integer or bool storage",
             found: t.class_name.clone(),
         })?;
         if t.storage_numel > MAX_TENSOR_ELEMENTS {
@@ -276,12 +463,16 @@ pub fn read_torch_zip(path: &Path) -> Result<TensorMap> {
             storages.insert(t.storage_key.clone(), bytes);
         }
         let storage = &storages[&t.storage_key];
-        let tensor = gather(storage, elem, &t).map_err(|reason| FlameError::Invalid {
+        let bytes = gather(storage, elem, &t).map_err(|reason| FlameError::Invalid {
             key: key.clone(),
             reason,
         })?;
-        let raw = RawTensor::from_bytes(&key, dtype, t.size.clone(), &tensor)?;
-        out.insert(key, raw);
+        out.push(RawEntry {
+            key,
+            dtype,
+            shape: t.size,
+            bytes,
+        });
     }
     Ok(out)
 }
@@ -305,7 +496,7 @@ fn gather(storage: &[u8], elem: usize, t: &TensorRef) -> std::result::Result<Vec
             .and_then(|x| x.checked_add(max_index))
             .ok_or("tensor view overflows")?;
     }
-    if max_index >= t.storage_numel {
+    if max_index >= t.storage_numel || (max_index + 1) * elem > storage.len() {
         return Err(format!(
             "view reaches element {max_index} of a storage of {}",
             t.storage_numel
@@ -326,4 +517,170 @@ fn gather(storage: &[u8], elem: usize, t: &TensorRef) -> std::result::Result<Vec
         }
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn golden(name: &str) -> std::path::PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/golden")
+            .join(name)
+    }
+
+    /// The public reader converts floats to f32; here the bytes themselves must be what torch
+    /// wrote, so float64 views of a shared storage are compared bit for bit.
+    #[test]
+    fn raw_bytes_equal_what_torch_wrote() {
+        let expected_bytes = std::fs::read(golden("pickle_expected.safetensors")).unwrap();
+        let expected = safetensors::SafeTensors::deserialize(&expected_bytes).unwrap();
+        let expected_p1_bytes = std::fs::read(golden("pickle_expected_p1.safetensors")).unwrap();
+        let expected_p1 = safetensors::SafeTensors::deserialize(&expected_p1_bytes).unwrap();
+        for (file, expected) in [
+            ("pickle_p1.pt", &expected_p1),
+            ("pickle_p2.pt", &expected),
+            ("pickle_p4.pt", &expected),
+        ] {
+            let raw = read_torch_zip_raw(&golden(file)).unwrap();
+            let keys: Vec<&str> = raw.iter().map(|e| e.key.as_str()).collect();
+            assert_eq!(
+                raw.len(),
+                expected.len(),
+                "{file}: tensor count, read {keys:?}"
+            );
+            let mut n_f64 = 0;
+            for e in &raw {
+                let want = expected
+                    .tensor(&e.key)
+                    .unwrap_or_else(|_| panic!("{file}: unexpected key {}", e.key));
+                assert_eq!(e.shape, want.shape(), "{file}: {}", e.key);
+                // Bool tensors are read as their u8 bytes; everything else keeps its dtype.
+                let want_dtype = match want.dtype() {
+                    safetensors::Dtype::F64 => DType::F64,
+                    safetensors::Dtype::F32 => DType::F32,
+                    safetensors::Dtype::F16 => DType::F16,
+                    safetensors::Dtype::BF16 => DType::BF16,
+                    safetensors::Dtype::I64 => DType::I64,
+                    safetensors::Dtype::I32 => DType::I32,
+                    safetensors::Dtype::U8 | safetensors::Dtype::BOOL => DType::U8,
+                    other => panic!("{}: fixture dtype {other:?}", e.key),
+                };
+                assert_eq!(e.dtype, want_dtype, "{file}: {}", e.key);
+                if let Some(i) = e.bytes.iter().zip(want.data()).position(|(a, b)| a != b) {
+                    panic!(
+                        "{file}: {} differs at byte {i}: expected {}, actual {}",
+                        e.key,
+                        want.data()[i],
+                        e.bytes[i]
+                    );
+                }
+                assert_eq!(e.bytes.len(), want.data().len(), "{file}: {}", e.key);
+                n_f64 += usize::from(e.dtype == DType::F64);
+            }
+            assert_eq!(n_f64, 5, "{file}: the five float64 views");
+        }
+    }
+
+    #[test]
+    fn gather_checks_the_view_against_the_storage() {
+        let storage: Vec<u8> = (0..6).collect();
+        let t = |offset, size: Vec<usize>, stride: Vec<usize>| TensorRef {
+            storage_key: "0".into(),
+            class_name: "ByteStorage".into(),
+            storage_numel: 6,
+            offset,
+            size,
+            stride,
+        };
+        assert_eq!(
+            gather(&storage, 1, &t(1, vec![2, 2], vec![1, 2])).unwrap(),
+            [1, 3, 2, 4]
+        );
+        assert_eq!(
+            gather(&storage, 1, &t(4, vec![3], vec![0])).unwrap(),
+            [4, 4, 4]
+        );
+        assert!(gather(&storage, 1, &t(5, vec![2], vec![1])).is_err());
+        assert!(gather(&storage, 1, &t(0, vec![2, usize::MAX], vec![1, 1])).is_err());
+        assert!(gather(&storage[..3], 1, &t(0, vec![4], vec![1])).is_err());
+    }
+
+    fn walk_of(data: &[u8]) -> std::result::Result<BTreeMap<String, TensorRef>, String> {
+        let p = pickle::parse(data).map_err(|e| e.to_string())?;
+        let mut w = Walk {
+            p: &p,
+            out: BTreeMap::new(),
+            path: Vec::new(),
+            visits: 0,
+        };
+        w.walk(p.root(), "", 0)?;
+        Ok(w.out)
+    }
+
+    /// `c torch._utils _rebuild_tensor_v2 ((storage pid) offset (size) (stride)) R`
+    fn tensor_pickle(key: &str, offset: u8) -> Vec<u8> {
+        let mut v =
+            b"ctorch._utils\n_rebuild_tensor_v2\n((X\x07\x00\x00\x00storagectorch\nFloatStorage\nX"
+                .to_vec();
+        v.extend((key.len() as u32).to_le_bytes());
+        v.extend(key.as_bytes());
+        v.extend(b"X\x03\x00\x00\x00cpuK\x08tQK");
+        v.push(offset);
+        v.extend(b"K\x02\x85K\x01\x85tR");
+        v
+    }
+
+    #[test]
+    fn walk_reports_conflicts_and_stops_at_depth_and_cycles() {
+        // {"a.b": t0, "a": {"b": t1}}: two different tensors for `a.b`.
+        let mut d = b"\x80\x02}(X\x03\x00\x00\x00a.b".to_vec();
+        d.extend(tensor_pickle("0", 0));
+        d.extend(b"X\x01\x00\x00\x00a}X\x01\x00\x00\x00b");
+        d.extend(tensor_pickle("1", 0));
+        d.extend(b"su.");
+        let e = walk_of(&d).unwrap_err();
+        assert!(
+            e.contains("two different tensors flatten to the key `a.b`"),
+            "{e}"
+        );
+
+        // 40 nested dicts around a tensor.
+        let mut d = b"\x80\x02".to_vec();
+        for _ in 0..40 {
+            d.extend(b"}X\x01\x00\x00\x00k");
+        }
+        d.extend(tensor_pickle("0", 0));
+        d.extend(b"s".repeat(40));
+        d.push(b'.');
+        let e = walk_of(&d).unwrap_err();
+        assert!(e.contains("nested more than 32 deep"), "{e}");
+
+        // A dict holding itself and a tensor: the cycle is skipped, the tensor found once.
+        let mut d = b"\x80\x02}q\x00(X\x04\x00\x00\x00selfh\x00X\x01\x00\x00\x00t".to_vec();
+        d.extend(tensor_pickle("0", 3));
+        d.extend(b"u.");
+        let out = walk_of(&d).unwrap();
+        assert_eq!(out.keys().collect::<Vec<_>>(), ["t"]);
+        assert_eq!(out["t"].offset, 3);
+
+        // Seven levels of lists, each holding the previous one 16 times: a 1 kB pickle that
+        // describes a tree of 16^7 leaves. The visit budget stops it.
+        let mut d = b"\x80\x02]q\x00".to_vec();
+        for _ in 0..7 {
+            d.extend(b"]q\x01(");
+            d.extend(b"h\x00".repeat(16));
+            d.extend(b"eq\x00");
+        }
+        d.push(b'.');
+        let e = walk_of(&d).unwrap_err();
+        assert!(e.contains("more than"), "{e}");
+    }
+
+    #[test]
+    fn unsupported_tensor_kinds_are_named() {
+        let d = b"\x80\x02}X\x01\x00\x00\x00qctorch._utils\n_rebuild_qtensor\n)Rs.";
+        let e = walk_of(d).unwrap_err();
+        assert!(e.contains("`q`") && e.contains("_rebuild_qtensor"), "{e}");
+    }
 }
