@@ -315,12 +315,13 @@ fn init_rule(key: &str, shape: &[usize]) -> (f64, f64) {
     }
 }
 
+/// Weights as plain data: key -> (shape, row-major values).
+pub type WeightData = BTreeMap<String, (Vec<usize>, Vec<f32>)>;
+
 /// Seeded random weights for every key of `cfg`, with realistic magnitudes.
-pub fn init_weights(
-    cfg: &ModelConfig,
-    seed: u64,
-) -> Result<BTreeMap<String, (Vec<usize>, Vec<f32>)>> {
+pub fn init_weights(cfg: &ModelConfig, seed: u64) -> Result<WeightData> {
     let keys = expected_keys(cfg)?;
+    #[allow(clippy::type_complexity)]
     let out: Vec<(String, (Vec<usize>, Vec<f32>))> = keys
         .into_par_iter()
         .map(|(k, shape)| {

@@ -190,7 +190,7 @@ impl ModelConfig {
     pub fn validate(&self) -> Result<(), String> {
         let p = |c: bool, m: &str| if c { Ok(()) } else { Err(m.to_string()) };
         p(
-            self.patch > 0 && self.dino_size % self.patch == 0,
+            self.patch > 0 && self.dino_size.is_multiple_of(self.patch),
             "dino_size must be a multiple of patch",
         )?;
         p(self.grid() >= 2, "the patch grid must be at least 2x2")?;
@@ -199,7 +199,7 @@ impl ModelConfig {
             "image_size must be a power of two >= 8",
         )?;
         p(
-            self.vit_heads > 0 && self.vit_dim % self.vit_heads == 0,
+            self.vit_heads > 0 && self.vit_dim.is_multiple_of(self.vit_heads),
             "vit_dim must be a multiple of vit_heads",
         )?;
         p(

@@ -2,8 +2,15 @@
 //! names are the release checkpoint's keys.
 
 pub mod config;
+pub mod dino;
+pub mod dpt;
 pub mod error;
 pub mod layers;
 
 pub use config::ModelConfig;
 pub use error::{NetError, Result};
+pub mod checkpoint;
+pub mod gs_generator;
+pub mod model;
+pub mod plane;
+pub mod style_unet;

@@ -5,11 +5,15 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use candle_core::{DType, Device, Tensor};
-use gagavatar_net::checkpoint::{self, check_keys, init_weights, load_model, read_weights, write_tensors};
+use gagavatar_net::checkpoint::{
+    self, check_keys, init_weights, load_model, read_weights, write_tensors,
+};
 use gagavatar_net::{ModelConfig, NetError};
 
 fn golden(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/golden").join(name)
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/golden")
+        .join(name)
 }
 
 fn tmp(name: &str) -> PathBuf {
@@ -28,20 +32,35 @@ fn same(a: &Tensor, b: &Tensor) -> bool {
 fn release_container_reads_like_the_safetensors() {
     let pt = read_weights(&golden("tiny_release_format.pt")).unwrap();
     let st = read_weights(&golden("tiny_weights.safetensors")).unwrap();
-    assert!(pt.config.is_none(), "the release .pt has no gagavatar config");
+    assert!(
+        pt.config.is_none(),
+        "the release .pt has no gagavatar config"
+    );
     for (k, t) in &st.tensors {
-        let p = pt.tensors.get(k).unwrap_or_else(|| panic!("{k} missing from the .pt"));
+        let p = pt
+            .tensors
+            .get(k)
+            .unwrap_or_else(|| panic!("{k} missing from the .pt"));
         assert!(same(p, t), "{k} differs between .pt and safetensors");
     }
     // Everything else in the .pt is the perceptual-loss weights, which check_keys accepts.
-    let extra: Vec<_> = pt.tensors.keys().filter(|k| !st.tensors.contains_key(*k)).collect();
+    let extra: Vec<_> = pt
+        .tensors
+        .keys()
+        .filter(|k| !st.tensors.contains_key(*k))
+        .collect();
     assert_eq!(extra, ["percep_loss.vggface.network.0.weight"]);
     check_keys(&ModelConfig::tiny(), &pt.tensors).unwrap();
     // Without a preset the .pt means the release architecture: a clear key error, not garbage.
     let err = load_model(&golden("tiny_release_format.pt"), None, &Device::Cpu).unwrap_err();
     assert!(matches!(err, NetError::Keys { .. }), "{err}");
     assert!(err.to_string().contains("misshapen"), "{err}");
-    load_model(&golden("tiny_release_format.pt"), Some(&ModelConfig::tiny()), &Device::Cpu).unwrap();
+    load_model(
+        &golden("tiny_release_format.pt"),
+        Some(&ModelConfig::tiny()),
+        &Device::Cpu,
+    )
+    .unwrap();
 }
 
 #[test]
@@ -74,7 +93,10 @@ fn init_weights_is_seeded_and_complete() {
     let b = init_weights(&cfg, 5).unwrap();
     let c = init_weights(&cfg, 6).unwrap();
     assert_eq!(a, b, "same seed, same weights");
-    assert_ne!(a["head_base"], c["head_base"], "another seed, other weights");
+    assert_ne!(
+        a["head_base"], c["head_base"],
+        "another seed, other weights"
+    );
     let keys = checkpoint::expected_keys(&cfg).unwrap();
     assert_eq!(a.len(), keys.len());
     for (k, (shape, v)) in &a {
@@ -85,7 +107,11 @@ fn init_weights_is_seeded_and_complete() {
     let (s, w) = &a["gs_generator_l0.gaussian_conv.2.weight"];
     let fan_in = (s[1] * s[2] * s[3]) as f64;
     let var = w.iter().map(|x| (*x as f64).powi(2)).sum::<f64>() / w.len() as f64;
-    assert!((var * fan_in - 1.0).abs() < 0.2, "variance x fan_in = {}", var * fan_in);
+    assert!(
+        (var * fan_in - 1.0).abs() < 0.2,
+        "variance x fan_in = {}",
+        var * fan_in
+    );
 }
 
 #[test]
@@ -93,7 +119,11 @@ fn corrupt_and_wrong_files_are_clear_errors() {
     let junk = tmp("junk.safetensors");
     std::fs::write(&junk, b"not a checkpoint at all").unwrap();
     let e = read_weights(&junk).err().expect("junk must not load");
-    assert!(e.to_string().contains("neither a torch zip nor safetensors"), "{e}");
+    assert!(
+        e.to_string()
+            .contains("neither a torch zip nor safetensors"),
+        "{e}"
+    );
     let trunc = tmp("truncated.pt");
     let bytes = std::fs::read(golden("tiny_release_format.pt")).unwrap();
     std::fs::write(&trunc, &bytes[..bytes.len() / 2]).unwrap();
@@ -104,7 +134,10 @@ fn corrupt_and_wrong_files_are_clear_errors() {
     // An integer tensor where weights are expected.
     let bad = tmp("int.safetensors");
     let mut m = std::collections::HashMap::new();
-    m.insert("head_base".to_string(), Tensor::zeros(3, DType::I64, &Device::Cpu).unwrap());
+    m.insert(
+        "head_base".to_string(),
+        Tensor::zeros(3, DType::I64, &Device::Cpu).unwrap(),
+    );
     candle_core::safetensors::save(&m, &bad).unwrap();
     let e = read_weights(&bad).err().expect("int weights");
     assert!(e.to_string().contains("floating point"), "{e}");

@@ -61,7 +61,7 @@ fn compare(name: &str, got: &Tensor, want: &Tensor, tol: f64) -> f64 {
     let (mut worst, mut at) = (0.0f64, 0usize);
     for (i, (a, b)) in g.iter().zip(&w).enumerate() {
         let d = (a - b).abs();
-        if !(d <= worst) {
+        if d > worst || d.is_nan() {
             worst = d;
             at = i;
         }

@@ -1,6 +1,18 @@
-//! 2-D convolution for NCHW f32 tensors.
+//! 2-D convolution for NCHW tensors, as a differentiable candle custom op with fast CPU
+//! kernels (f32 and f64): Winograd F(4x4, 3x3) for 3x3 stride-1 layers, banded implicit-im2col
+//! GEMM for everything else. Other devices and dtypes fall back to candle's `conv2d`.
 
-use candle_core::{Result, Tensor};
+pub(crate) mod elem;
+pub use elem::limit_simd;
+mod im2col;
+#[cfg(target_arch = "x86_64")]
+mod wino_x86;
+mod winograd;
+
+use candle_core::backend::BackendStorage;
+use candle_core::{
+    bail, CpuStorage, CustomOp1, CustomOp2, CustomOp3, DType, Layout, Result, Shape, Tensor,
+};
 
 /// Stride, padding (same on every side) and dilation-free, group-free 2-D convolution settings.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -18,11 +30,577 @@ impl Default for Conv2dSpec {
     }
 }
 
-/// `x` [B, Cin, H, W], `w` [Cout, Cin, kh, kw], optional `bias` [Cout].
+/// Which kernel runs a convolution. The network uses [`ConvAlgo::Auto`]; the others exist so
+/// tests and benchmarks can compare the paths on the same shapes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ConvAlgo {
+    /// Winograd where it pays off, banded GEMM otherwise (overridable, see [`conv2d`]).
+    Auto,
+    /// Banded implicit-im2col GEMM (any kernel, stride, padding).
+    Gemm,
+    /// Winograd F(4x4, 3x3); only for 3x3 kernels with stride 1 (an error otherwise).
+    Winograd,
+    /// candle's own `conv2d` (im2col over the whole image), the reference.
+    Candle,
+}
+
+/// `x` [B, Cin, H, W], `w` [Cout, Cin, kh, kw], optional `bias` [Cout] -> [B, Cout, OH, OW].
+///
+/// The environment variable `GAGAVATAR_CONV` (`candle`, `gemm` or `winograd`: Winograd where
+/// it applies, GEMM elsewhere) replaces the automatic choice everywhere, for A/B comparisons of
+/// whole-model runs.
 pub fn conv2d(x: &Tensor, w: &Tensor, bias: Option<&Tensor>, spec: Conv2dSpec) -> Result<Tensor> {
-    let y = x.conv2d(w, spec.padding, spec.stride, 1, 1)?;
+    conv2d_with_algo(x, w, bias, spec, ConvAlgo::Auto)
+}
+
+/// [`conv2d`] with an explicit kernel choice (for tests and benchmarks).
+pub fn conv2d_with_algo(
+    x: &Tensor,
+    w: &Tensor,
+    bias: Option<&Tensor>,
+    spec: Conv2dSpec,
+    algo: ConvAlgo,
+) -> Result<Tensor> {
+    let g = Geom::new(x.dims(), w.dims(), spec)?;
+    if x.dtype() != w.dtype() {
+        bail!(
+            "conv2d: input is {:?} but weight is {:?}",
+            x.dtype(),
+            w.dtype()
+        );
+    }
+    if let Some(b) = bias {
+        if b.dims() != [g.cout] {
+            bail!(
+                "conv2d: bias must be [{}] for weight {:?}, got {:?}",
+                g.cout,
+                w.dims(),
+                b.dims()
+            );
+        }
+        if b.dtype() != x.dtype() {
+            bail!(
+                "conv2d: bias is {:?} but input is {:?}",
+                b.dtype(),
+                x.dtype()
+            );
+        }
+    }
+    let algo = match (algo, env_algo()) {
+        // The override asks for Winograd wherever it applies, not for errors elsewhere.
+        (ConvAlgo::Auto, Some(ConvAlgo::Winograd)) if !winograd::eligible(&g) => ConvAlgo::Gemm,
+        (ConvAlgo::Auto, Some(a)) => a,
+        (a, _) => a,
+    };
+    if algo == ConvAlgo::Winograd && !winograd::eligible(&g) {
+        bail!(
+            "conv2d: Winograd needs a 3x3 kernel with stride 1, got {:?} stride {}",
+            w.dims(),
+            spec.stride
+        );
+    }
+    let ours = algo != ConvAlgo::Candle
+        && x.device().is_cpu()
+        && matches!(x.dtype(), DType::F32 | DType::F64);
+    if !ours {
+        let y = x.conv2d(w, spec.padding, spec.stride, 1, 1)?;
+        return match bias {
+            Some(b) => y.broadcast_add(&b.reshape((1, g.cout, 1, 1))?),
+            None => Ok(y),
+        };
+    }
+    let op = ConvOp { spec, algo };
+    let (x, w) = (x.contiguous()?, w.contiguous()?);
     match bias {
-        Some(b) => y.broadcast_add(&b.reshape((1, b.elem_count(), 1, 1))?),
-        None => Ok(y),
+        Some(b) => x.apply_op3(&w, &b.contiguous()?, op),
+        None => x.apply_op2(&w, op),
+    }
+}
+
+/// `GAGAVATAR_CONV`, read once.
+fn env_algo() -> Option<ConvAlgo> {
+    use std::sync::OnceLock;
+    static ALGO: OnceLock<Option<ConvAlgo>> = OnceLock::new();
+    *ALGO.get_or_init(|| {
+        match std::env::var("GAGAVATAR_CONV")
+            .ok()?
+            .to_ascii_lowercase()
+            .as_str()
+        {
+            "candle" => Some(ConvAlgo::Candle),
+            "gemm" => Some(ConvAlgo::Gemm),
+            "winograd" => Some(ConvAlgo::Winograd),
+            _ => None,
+        }
+    })
+}
+
+/// Shapes of one convolution. Padding may differ between the axes internally (the input
+/// gradient of a rectangular kernel needs `kh-1-p` rows but `kw-1-p` columns).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Geom {
+    pub b: usize,
+    pub cin: usize,
+    pub h: usize,
+    pub w: usize,
+    pub cout: usize,
+    pub kh: usize,
+    pub kw: usize,
+    pub stride: usize,
+    pub ph: usize,
+    pub pw: usize,
+    pub oh: usize,
+    pub ow: usize,
+}
+
+impl Geom {
+    fn new(xd: &[usize], wd: &[usize], spec: Conv2dSpec) -> Result<Self> {
+        let (&[b, cin, h, w], &[cout, wcin, kh, kw]) = (xd, wd) else {
+            bail!("conv2d: input must be [B, Cin, H, W] and weight [Cout, Cin, kh, kw], got {xd:?} and {wd:?}");
+        };
+        if cin != wcin {
+            bail!("conv2d: input {xd:?} has {cin} channels but weight {wd:?} expects {wcin}");
+        }
+        Self::with_pads(
+            b,
+            cin,
+            h,
+            w,
+            cout,
+            kh,
+            kw,
+            spec.stride,
+            spec.padding,
+            spec.padding,
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn with_pads(
+        b: usize,
+        cin: usize,
+        h: usize,
+        w: usize,
+        cout: usize,
+        kh: usize,
+        kw: usize,
+        stride: usize,
+        ph: usize,
+        pw: usize,
+    ) -> Result<Self> {
+        if [b, cin, h, w, cout, kh, kw].contains(&0) {
+            bail!("conv2d: empty dimension in input [{b}, {cin}, {h}, {w}] or weight [{cout}, {cin}, {kh}, {kw}]");
+        }
+        if stride == 0 {
+            bail!("conv2d: stride must be positive");
+        }
+        if h + 2 * ph < kh || w + 2 * pw < kw {
+            bail!(
+                "conv2d: padded input {}x{} is smaller than the {kh}x{kw} kernel",
+                h + 2 * ph,
+                w + 2 * pw
+            );
+        }
+        let (oh, ow) = (
+            (h + 2 * ph - kh) / stride + 1,
+            (w + 2 * pw - kw) / stride + 1,
+        );
+        Ok(Self {
+            b,
+            cin,
+            h,
+            w,
+            cout,
+            kh,
+            kw,
+            stride,
+            ph,
+            pw,
+            oh,
+            ow,
+        })
+    }
+
+    /// Rows of the patch matrix.
+    pub fn k(&self) -> usize {
+        self.cin * self.kh * self.kw
+    }
+
+    fn out_shape(&self) -> Shape {
+        Shape::from((self.b, self.cout, self.oh, self.ow))
+    }
+
+    /// The input gradient of a stride-1 convolution is itself a stride-1 convolution of the
+    /// output gradient with the flipped, transposed filters and padding `k-1-p`.
+    fn transposed(&self) -> Option<Self> {
+        if self.stride != 1 || self.ph >= self.kh || self.pw >= self.kw {
+            return None;
+        }
+        let (ph, pw) = (self.kh - 1 - self.ph, self.kw - 1 - self.pw);
+        let g = Self::with_pads(
+            self.b, self.cout, self.oh, self.ow, self.cin, self.kh, self.kw, 1, ph, pw,
+        )
+        .ok()?;
+        (g.oh == self.h && g.ow == self.w).then_some(g)
+    }
+}
+
+/// Winograd pays off from about this many 4x4 output tiles per image (weight transform and
+/// per-GEMM overheads amortised; measured with examples/conv_probe: at 100 tiles of 256
+/// channels both paths tie, at 64 tiles of 512 channels the GEMM path is 1.5x faster, at 256
+/// tiles Winograd is 2x faster) and this many input and output channels (below, the tile
+/// transforms cost more than the multiplies they save). Per image, not per batch, so that an
+/// image gets the same kernel, hence the same rounding, alone and in a batch.
+const WINOGRAD_MIN_TILES: usize = 128;
+const WINOGRAD_MIN_CHANNELS: usize = 8;
+
+fn use_winograd(g: &Geom, algo: ConvAlgo) -> bool {
+    match algo {
+        ConvAlgo::Winograd => true,
+        ConvAlgo::Gemm | ConvAlgo::Candle => false,
+        ConvAlgo::Auto => {
+            winograd::eligible(g)
+                && g.oh.div_ceil(4) * g.ow.div_ceil(4) >= WINOGRAD_MIN_TILES
+                && g.cin.min(g.cout) >= WINOGRAD_MIN_CHANNELS
+        }
+    }
+}
+
+fn forward_impl<T: elem::Elem>(
+    x: &[T],
+    w: &[T],
+    bias: Option<&[T]>,
+    g: &Geom,
+    algo: ConvAlgo,
+) -> Vec<T> {
+    let mut y = elem::alloc_output(g.b * g.cout * g.oh * g.ow);
+    if use_winograd(g, algo) && winograd::eligible(g) {
+        let u = winograd::transform_weights(w, g.cout, g.cin);
+        winograd::forward(x, &u, bias, g, &mut y);
+    } else {
+        im2col::forward(x, w, bias, g, &mut y);
+    }
+    y
+}
+
+/// `w` [cout, cin, kh, kw] -> [cin, cout, kh, kw] with both spatial axes reversed.
+fn flip_transpose<T: elem::Elem>(w: &[T], g: &Geom) -> Vec<T> {
+    let khw = g.kh * g.kw;
+    let mut out = vec![T::ZERO; w.len()];
+    for co in 0..g.cout {
+        for ci in 0..g.cin {
+            let src = &w[(co * g.cin + ci) * khw..][..khw];
+            let dst = &mut out[(ci * g.cout + co) * khw..][..khw];
+            for (d, s) in dst.iter_mut().zip(src.iter().rev()) {
+                *d = *s;
+            }
+        }
+    }
+    out
+}
+
+fn contiguous<'a, T>(data: &'a [T], l: &Layout, what: &str) -> Result<&'a [T]> {
+    match l.contiguous_offsets() {
+        Some((a, b)) => Ok(&data[a..b]),
+        None => bail!("conv2d: {what} must be contiguous"),
+    }
+}
+
+/// Runs `f` on the contiguous f32 or f64 slices of two storages.
+macro_rules! with_float_slices {
+    ($name:literal, ($a:expr, $la:expr), ($b:expr, $lb:expr), |$sa:ident, $sb:ident| $body:expr) => {
+        match ($a, $b) {
+            (CpuStorage::F32(a), CpuStorage::F32(b)) => {
+                let ($sa, $sb) = (contiguous(a, $la, $name)?, contiguous(b, $lb, $name)?);
+                CpuStorage::F32($body)
+            }
+            (CpuStorage::F64(a), CpuStorage::F64(b)) => {
+                let ($sa, $sb) = (contiguous(a, $la, $name)?, contiguous(b, $lb, $name)?);
+                CpuStorage::F64($body)
+            }
+            (a, b) => bail!(
+                "{}: needs matching f32 or f64 operands, got {:?} and {:?}",
+                $name,
+                a.dtype(),
+                b.dtype()
+            ),
+        }
+    };
+}
+
+#[derive(Debug, Clone, Copy)]
+struct ConvOp {
+    spec: Conv2dSpec,
+    algo: ConvAlgo,
+}
+
+impl ConvOp {
+    fn backward(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        gy: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let gy = gy.contiguous()?;
+        let gx = if x.track_op() {
+            let (_, _, h, wd) = x.dims4()?;
+            Some(gy.apply_op2_no_bwd(
+                w,
+                &GradInputOp {
+                    op: *self,
+                    h,
+                    w: wd,
+                },
+            )?)
+        } else {
+            None
+        };
+        let gw = if w.track_op() {
+            let (_, _, kh, kw) = w.dims4()?;
+            Some(x.apply_op2_no_bwd(&gy, &GradWeightOp { op: *self, kh, kw })?)
+        } else {
+            None
+        };
+        Ok((gx, gw))
+    }
+}
+
+impl CustomOp2 for ConvOp {
+    fn name(&self) -> &'static str {
+        "gagavatar-conv2d"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let g = Geom::new(l1.dims(), l2.dims(), self.spec)?;
+        let y = with_float_slices!("conv2d", (s1, l1), (s2, l2), |x, w| forward_impl(
+            x, w, None, &g, self.algo
+        ));
+        Ok((y, g.out_shape()))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        _y: &Tensor,
+        gy: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        self.backward(x, w, gy)
+    }
+}
+
+impl CustomOp3 for ConvOp {
+    fn name(&self) -> &'static str {
+        "gagavatar-conv2d-bias"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let g = Geom::new(l1.dims(), l2.dims(), self.spec)?;
+        if l3.dims() != [g.cout] {
+            bail!("conv2d: bias must be [{}], got {:?}", g.cout, l3.dims());
+        }
+        let y = match (s1, s2, s3) {
+            (CpuStorage::F32(x), CpuStorage::F32(w), CpuStorage::F32(b)) => {
+                let (x, w, b) = (
+                    contiguous(x, l1, "input")?,
+                    contiguous(w, l2, "weight")?,
+                    contiguous(b, l3, "bias")?,
+                );
+                CpuStorage::F32(forward_impl(x, w, Some(b), &g, self.algo))
+            }
+            (CpuStorage::F64(x), CpuStorage::F64(w), CpuStorage::F64(b)) => {
+                let (x, w, b) = (
+                    contiguous(x, l1, "input")?,
+                    contiguous(w, l2, "weight")?,
+                    contiguous(b, l3, "bias")?,
+                );
+                CpuStorage::F64(forward_impl(x, w, Some(b), &g, self.algo))
+            }
+            (x, w, b) => bail!(
+                "conv2d: needs f32 or f64 operands of one type, got {:?}, {:?}, {:?}",
+                x.dtype(),
+                w.dtype(),
+                b.dtype()
+            ),
+        };
+        Ok((y, g.out_shape()))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        b: &Tensor,
+        _y: &Tensor,
+        gy: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let (gx, gw) = self.backward(x, w, gy)?;
+        let gb = if b.track_op() {
+            Some(gy.contiguous()?.apply_op1_no_bwd(&GradBiasOp)?)
+        } else {
+            None
+        };
+        Ok((gx, gw, gb))
+    }
+}
+
+/// `dL/dx` from `dL/dy` (arg 1) and `w` (arg 2); `h`, `w` are the input's spatial size.
+struct GradInputOp {
+    op: ConvOp,
+    h: usize,
+    w: usize,
+}
+
+impl GradInputOp {
+    fn run<T: elem::Elem>(&self, gy: &[T], w: &[T], g: &Geom) -> Vec<T> {
+        match g.transposed() {
+            Some(gt) => forward_impl(gy, &flip_transpose(w, g), None, &gt, self.op.algo),
+            None => {
+                let mut gx = elem::alloc_output(g.b * g.cin * g.h * g.w);
+                im2col::grad_input_col2im(gy, w, g, &mut gx);
+                gx
+            }
+        }
+    }
+}
+
+impl CustomOp2 for GradInputOp {
+    fn name(&self) -> &'static str {
+        "gagavatar-conv2d-grad-input"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (&[b, cout, oh, ow], &[wcout, cin, _, _]) = (l1.dims(), l2.dims()) else {
+            bail!(
+                "conv2d backward: bad gradient {:?} or weight {:?}",
+                l1.dims(),
+                l2.dims()
+            );
+        };
+        let g = Geom::new(&[b, cin, self.h, self.w], l2.dims(), self.op.spec)?;
+        if (wcout, oh, ow) != (g.cout, g.oh, g.ow) || cout != g.cout {
+            bail!(
+                "conv2d backward: gradient {:?} does not match the output of weight {:?}",
+                l1.dims(),
+                l2.dims()
+            );
+        }
+        let gx = with_float_slices!("conv2d backward", (s1, l1), (s2, l2), |gy, w| self
+            .run(gy, w, &g));
+        Ok((gx, Shape::from((b, cin, self.h, self.w))))
+    }
+}
+
+/// `dL/dw` from `x` (arg 1) and `dL/dy` (arg 2).
+struct GradWeightOp {
+    op: ConvOp,
+    kh: usize,
+    kw: usize,
+}
+
+impl GradWeightOp {
+    fn run<T: elem::Elem>(&self, x: &[T], gy: &[T], g: &Geom) -> Vec<T> {
+        if use_winograd(g, self.op.algo) && winograd::eligible(g) {
+            winograd::grad_weight(x, gy, g)
+        } else {
+            im2col::grad_weight(x, gy, g)
+        }
+    }
+}
+
+impl CustomOp2 for GradWeightOp {
+    fn name(&self) -> &'static str {
+        "gagavatar-conv2d-grad-weight"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (&[_, cin, _, _], &[_, cout, _, _]) = (l1.dims(), l2.dims()) else {
+            bail!(
+                "conv2d backward: bad input {:?} or gradient {:?}",
+                l1.dims(),
+                l2.dims()
+            );
+        };
+        let g = Geom::new(l1.dims(), &[cout, cin, self.kh, self.kw], self.op.spec)?;
+        if l2.dims() != [g.b, g.cout, g.oh, g.ow] {
+            bail!(
+                "conv2d backward: gradient {:?} does not match input {:?}",
+                l2.dims(),
+                l1.dims()
+            );
+        }
+        let gw = with_float_slices!("conv2d backward", (s1, l1), (s2, l2), |x, gy| self
+            .run(x, gy, &g));
+        Ok((gw, Shape::from((cout, cin, self.kh, self.kw))))
+    }
+}
+
+/// `dL/dbias`: per-channel sums of `dL/dy` (candle's reduction over dims (0, 2, 3) walks the
+/// tensor with strided indexing, several times slower than these contiguous row sums).
+struct GradBiasOp;
+
+fn channel_sums<T: elem::Elem>(gy: &[T], b: usize, c: usize) -> Vec<T> {
+    use rayon::prelude::*;
+    let plane = gy.len() / (b * c).max(1);
+    (0..c)
+        .into_par_iter()
+        .map(|ci| {
+            let mut acc = T::ZERO;
+            for bi in 0..b {
+                acc += elem::sum(&gy[(bi * c + ci) * plane..(bi * c + ci + 1) * plane]);
+            }
+            acc
+        })
+        .collect()
+}
+
+impl CustomOp1 for GradBiasOp {
+    fn name(&self) -> &'static str {
+        "gagavatar-conv2d-grad-bias"
+    }
+
+    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+        let &[b, c, _, _] = l.dims() else {
+            bail!("conv2d backward: gradient must be 4-D, got {:?}", l.dims());
+        };
+        let out = match s {
+            CpuStorage::F32(v) => {
+                CpuStorage::F32(channel_sums(contiguous(v, l, "gradient")?, b, c))
+            }
+            CpuStorage::F64(v) => {
+                CpuStorage::F64(channel_sums(contiguous(v, l, "gradient")?, b, c))
+            }
+            s => bail!(
+                "conv2d backward: needs an f32 or f64 gradient, got {:?}",
+                s.dtype()
+            ),
+        };
+        Ok((out, Shape::from(c)))
     }
 }

@@ -4,5 +4,5 @@
 pub mod conv;
 pub mod resample;
 
-pub use conv::{conv2d, Conv2dSpec};
+pub use conv::{conv2d, conv2d_with_algo, Conv2dSpec, ConvAlgo};
 pub use resample::{resize, ResizeMode};

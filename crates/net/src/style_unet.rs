@@ -1,0 +1,1125 @@
+//! The neural renderer (spec section 8, keys `upsampler.*`): a StyleUNet that maps the splatted
+//! `color_dim`-channel image to RGB. A U-Net encodes the input into a StyleGAN2 latent and into
+//! per-resolution SFT scale/shift maps; a StyleGAN2 decoder with spatial feature transforms
+//! generates the image; a final sigmoid maps it to [0, 1].
+//!
+//! Efficiency choices (all exact in real arithmetic, so they change results only by rounding):
+//! - The x2 / x0.5 bilinear resizes (`align_corners=False`) are direct stencils (custom ops
+//!   with backward) instead of dense interpolation-matrix products: for an exact factor of two
+//!   each output needs two taps per axis, the matrices would cost `O(n)` per output.
+//! - An up ResBlock applies its 1x1 skip before the x2 resize instead of after: both are linear,
+//!   one mixes channels and the other pixels, so they commute, and at the low resolution the
+//!   1x1 does a quarter of the work.
+//! - A modulated convolution scales either the weight (per sample) or the input and output
+//!   (one batched convolution with the shared weight), whichever touches fewer numbers; see
+//!   [`ModulatedConv`].
+//! - Without gradient tracking the element-wise epilogues (leaky ReLU, noise injection, SFT,
+//!   residual sums) overwrite freshly computed tensors in place (module `fused`): at 512x512
+//!   each avoided allocation is tens of MB of page faults and a memory pass.
+
+use std::f64::consts::SQRT_2;
+
+use candle_core::{bail, DType, Module, Result, Tensor, D};
+use candle_nn::{Linear, VarBuilder};
+use gagavatar_ops::{conv2d, Conv2dSpec};
+
+use crate::config::ModelConfig;
+use crate::layers::Conv2d;
+
+/// Negative slope of every leaky ReLU in the renderer.
+const SLOPE: f64 = 0.2;
+/// Added to the squared norms in the style-code normalisation and the demodulation.
+const EPS: f64 = 1e-8;
+
+/// Which noise the decoder's StyleConvs inject.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Noise {
+    /// The checkpoint's buffers `stylegan_decoder.noises.noise{i}`: deterministic, so video
+    /// frames do not flicker.
+    #[default]
+    Fixed,
+    /// Fresh N(0, 1) noise per call and per sample, as the release does at inference.
+    Fresh,
+}
+
+/// A ResBlock of the U-Net: `conv1` 3x3 (in -> in), leaky ReLU, bilinear resize (x0.5 down,
+/// x2 up), `conv2` 3x3 (in -> out), leaky ReLU, plus `skip` 1x1 (no bias) of the resized input.
+#[derive(Debug, Clone)]
+pub struct ResBlock {
+    conv1: Conv2d,
+    conv2: Conv2d,
+    skip: Conv2d,
+    up: bool,
+}
+
+impl ResBlock {
+    pub fn new(vb: VarBuilder, cin: usize, cout: usize, up: bool) -> Result<Self> {
+        Ok(Self {
+            conv1: Conv2d::k3(vb.pp("conv1"), cin, cin)?,
+            conv2: Conv2d::k3(vb.pp("conv2"), cin, cout)?,
+            skip: Conv2d::new(vb.pp("skip"), cin, cout, 1, 1, 0, false)?,
+            up,
+        })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let h = fused::lrelu(self.conv1.forward(x)?)?;
+        if self.up {
+            let h = fused::lrelu(self.conv2.forward(&upsample2x(&h)?)?)?;
+            // skip(resize(x)) == resize(skip(x)); the 1x1 is 4x cheaper before the upsampling.
+            let s = upsample2x(&self.skip.forward(x)?)?;
+            fused::add(h, &s)
+        } else {
+            let h = fused::lrelu(self.conv2.forward(&downsample2x(&h)?)?)?;
+            let s = self.skip.forward(&downsample2x(x)?)?;
+            fused::add(h, &s)
+        }
+    }
+}
+
+/// `condition_scale.k` / `condition_shift.k`: 3x3 conv (ch -> ch), leaky ReLU, 3x3 conv
+/// (ch -> decoder channels); keys `0.*` and `2.*` (index 1 is the activation).
+#[derive(Debug, Clone)]
+pub struct ConditionBranch {
+    conv0: Conv2d,
+    conv2: Conv2d,
+}
+
+impl ConditionBranch {
+    pub fn new(vb: VarBuilder, ch: usize, out: usize) -> Result<Self> {
+        Ok(Self {
+            conv0: Conv2d::k3(vb.pp("0"), ch, ch)?,
+            conv2: Conv2d::k3(vb.pp("2"), ch, out)?,
+        })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        self.conv2.forward(&fused::lrelu(self.conv0.forward(x)?)?)
+    }
+}
+
+/// StyleGAN2's modulated convolution (no bias of its own): `style = modulation(latent)`,
+/// `w = weight * style` per sample over the input channels, optionally demodulated by
+/// `rsqrt(sum over in, kh, kw of w^2 + 1e-8)` per output channel, padding `k / 2`.
+///
+/// Two exact ways to run it, picked per call by which touches fewer numbers:
+/// - weight modulation: build each sample's weight `weight * (d[o] s[i])` and run an ordinary
+///   convolution per sample (cheap when the weight is small and the image large, e.g. 512x512);
+/// - input scaling: `conv(x * s[i], weight) * d[o]`, one batched convolution with the shared
+///   weight (cheap at low resolutions, where the 512x512x3x3 weights dominate). The per-sample
+///   weight is a rank-one rescaling of the shared one, so the two agree up to rounding.
+///
+/// The demodulation norms use `sum_i s[i]^2 E[o, i]` with `E = sum over kh, kw of weight^2`,
+/// which equals the sum over the modulated weight without building it; `E` is computed once at
+/// load time unless the weight is a trainable variable (then it is recomputed each call so the
+/// gradient flows through it).
+#[derive(Debug, Clone)]
+pub struct ModulatedConv {
+    weight: Tensor,
+    modulation: Linear,
+    demodulate: bool,
+    kernel_energy: Option<Tensor>,
+    cin: usize,
+    cout: usize,
+    k: usize,
+}
+
+/// How [`ModulatedConv`] applies the style (see there); `Auto` picks the cheaper.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ModulationPath {
+    Auto,
+    ModulateWeight,
+    ScaleInput,
+}
+
+impl ModulatedConv {
+    /// Loads `weight` [1, cout, cin, k, k] and `modulation.{weight, bias}` [cin, style_dim], [cin].
+    pub fn new(
+        vb: VarBuilder,
+        cin: usize,
+        cout: usize,
+        k: usize,
+        style_dim: usize,
+        demodulate: bool,
+    ) -> Result<Self> {
+        let raw = vb.get((1, cout, cin, k, k), "weight")?;
+        let trainable = raw.is_variable();
+        let weight = raw.reshape((cout, cin, k, k))?;
+        let modulation = candle_nn::linear(style_dim, cin, vb.pp("modulation"))?;
+        let kernel_energy = if demodulate && !trainable {
+            Some(Self::energy(&weight)?)
+        } else {
+            None
+        };
+        Ok(Self {
+            weight,
+            modulation,
+            demodulate,
+            kernel_energy,
+            cin,
+            cout,
+            k,
+        })
+    }
+
+    fn energy(weight: &Tensor) -> Result<Tensor> {
+        weight.sqr()?.sum((2, 3))
+    }
+
+    /// `x` [B, cin, H, W], `latent` [B, style_dim] -> `gain * modconv(x) + bias` [B, cout, H, W];
+    /// `bias` [cout]. Folding the gain and bias in here saves passes over the output.
+    pub fn forward(
+        &self,
+        x: &Tensor,
+        latent: &Tensor,
+        gain: f64,
+        bias: Option<&Tensor>,
+    ) -> Result<Tensor> {
+        self.forward_with(x, latent, gain, bias, ModulationPath::Auto)
+    }
+
+    /// [`Self::forward`] with an explicit choice of path (both are exact; for tests and timing).
+    pub fn forward_with(
+        &self,
+        x: &Tensor,
+        latent: &Tensor,
+        gain: f64,
+        bias: Option<&Tensor>,
+        path: ModulationPath,
+    ) -> Result<Tensor> {
+        let (b, cin, h, w) = x.dims4()?;
+        if cin != self.cin {
+            bail!(
+                "modulated conv expects {} input channels, got {cin}",
+                self.cin
+            );
+        }
+        let (lb, _) = latent.dims2()?;
+        if lb != b {
+            bail!("modulated conv: {b} images but {lb} latents");
+        }
+        // [B, cin]
+        let style = self.modulation.forward(latent)?;
+        // Per-sample output-channel factor [B, cout]: demodulation times the gain.
+        let factor = if self.demodulate {
+            let energy = match &self.kernel_energy {
+                Some(e) => e.clone(),
+                None => Self::energy(&self.weight)?,
+            };
+            let norm2 = (style.sqr()?.matmul(&energy.t()?)? + EPS)?;
+            Some((norm2.sqrt()?.recip()? * gain)?)
+        } else if gain != 1.0 {
+            Some(Tensor::full(gain, (b, self.cout), x.device())?.to_dtype(x.dtype())?)
+        } else {
+            None
+        };
+        let path = match path {
+            ModulationPath::Auto => {
+                let weight_numbers = self.cout * self.cin * self.k * self.k;
+                let image_numbers = (self.cin + self.cout) * h * w;
+                if image_numbers < weight_numbers {
+                    ModulationPath::ScaleInput
+                } else {
+                    ModulationPath::ModulateWeight
+                }
+            }
+            p => p,
+        };
+        let spec = Conv2dSpec {
+            stride: 1,
+            padding: self.k / 2,
+        };
+        match path {
+            ModulationPath::ScaleInput => {
+                let xs = x.broadcast_mul(&style.reshape((b, cin, 1, 1))?)?;
+                let mut y = conv2d(&xs, &self.weight, None, spec)?;
+                if let Some(f) = &factor {
+                    y = y.broadcast_mul(&f.reshape((b, self.cout, 1, 1))?)?;
+                }
+                match bias {
+                    Some(bias) => y.broadcast_add(&bias.reshape((1, self.cout, 1, 1))?),
+                    None => Ok(y),
+                }
+            }
+            _ => {
+                let mut outs = Vec::with_capacity(b);
+                for i in 0..b {
+                    let s = style.narrow(0, i, 1)?;
+                    let scale = match &factor {
+                        // Outer product d[o] s[i]: [cout, cin].
+                        Some(f) => f.narrow(0, i, 1)?.t()?.broadcast_mul(&s)?,
+                        None => s,
+                    };
+                    let rows = scale.dim(0)?;
+                    let wi = self
+                        .weight
+                        .broadcast_mul(&scale.reshape((rows, cin, 1, 1))?)?;
+                    let xi = if b == 1 {
+                        x.clone()
+                    } else {
+                        x.narrow(0, i, 1)?
+                    };
+                    outs.push(conv2d(&xi, &wi, bias, spec)?);
+                }
+                if b == 1 {
+                    Ok(outs.remove(0))
+                } else {
+                    Tensor::cat(&outs, 0)
+                }
+            }
+        }
+    }
+}
+
+/// StyleGAN2 StyleConv: `lrelu(modconv(x) * sqrt(2) + weight * noise + bias, 0.2)`, with a x2
+/// bilinear upsampling of the input first when `upsample`.
+#[derive(Debug, Clone)]
+pub struct StyleConv {
+    modulated_conv: ModulatedConv,
+    noise_weight: Tensor,
+    bias: Tensor,
+    upsample: bool,
+}
+
+impl StyleConv {
+    pub fn new(
+        vb: VarBuilder,
+        cin: usize,
+        cout: usize,
+        style_dim: usize,
+        upsample: bool,
+    ) -> Result<Self> {
+        Ok(Self {
+            modulated_conv: ModulatedConv::new(
+                vb.pp("modulated_conv"),
+                cin,
+                cout,
+                3,
+                style_dim,
+                true,
+            )?,
+            noise_weight: vb.get(1, "weight")?,
+            bias: vb.get((1, cout, 1, 1), "bias")?.reshape(cout)?,
+            upsample,
+        })
+    }
+
+    /// `noise` [1 or B, 1, H', W'] at the output resolution.
+    pub fn forward(&self, x: &Tensor, latent: &Tensor, noise: &Tensor) -> Result<Tensor> {
+        let up;
+        let x = if self.upsample {
+            up = upsample2x(x)?;
+            &up
+        } else {
+            x
+        };
+        let y = self
+            .modulated_conv
+            .forward(x, latent, SQRT_2, Some(&self.bias))?;
+        fused::noise_lrelu(y, noise, &self.noise_weight)
+    }
+}
+
+/// StyleGAN2 ToRGB: modulated 1x1 without demodulation, `+ bias`, plus the previous RGB skip
+/// upsampled x2 when given.
+#[derive(Debug, Clone)]
+pub struct ToRgb {
+    modulated_conv: ModulatedConv,
+    bias: Tensor,
+}
+
+impl ToRgb {
+    pub fn new(vb: VarBuilder, cin: usize, style_dim: usize) -> Result<Self> {
+        Ok(Self {
+            modulated_conv: ModulatedConv::new(
+                vb.pp("modulated_conv"),
+                cin,
+                3,
+                1,
+                style_dim,
+                false,
+            )?,
+            bias: vb.get((1, 3, 1, 1), "bias")?.reshape(3)?,
+        })
+    }
+
+    pub fn forward(&self, x: &Tensor, latent: &Tensor, skip: Option<&Tensor>) -> Result<Tensor> {
+        let y = self
+            .modulated_conv
+            .forward(x, latent, 1.0, Some(&self.bias))?;
+        match skip {
+            Some(s) => fused::add(y, &upsample2x(s)?),
+            None => Ok(y),
+        }
+    }
+}
+
+/// `upsampler.stylegan_decoder`: StyleGAN2 generator with SFT conditions (one scale/shift pair
+/// per resolution 8 .. image_size, applied after the first StyleConv of that resolution).
+#[derive(Debug, Clone)]
+pub struct StyleGan2Decoder {
+    style_mlp: Vec<Linear>,
+    constant_input: Tensor,
+    style_conv1: StyleConv,
+    to_rgb1: ToRgb,
+    style_convs: Vec<StyleConv>,
+    to_rgbs: Vec<ToRgb>,
+    noises: Vec<Tensor>,
+}
+
+impl StyleGan2Decoder {
+    pub fn new(cfg: &ModelConfig, vb: VarBuilder) -> Result<Self> {
+        let sd = cfg.style_dim;
+        let levels = cfg.renderer_levels();
+        let ch = |r: usize| cfg.decoder_channels(r);
+        let style_mlp = (0..cfg.style_mlp_layers)
+            .map(|i| candle_nn::linear(sd, sd, vb.pp(format!("style_mlp.{}", 2 * i + 1))))
+            .collect::<Result<Vec<_>>>()?;
+        let constant_input = vb.get((1, ch(4), 4, 4), "constant_input.weight")?;
+        let style_conv1 = StyleConv::new(vb.pp("style_conv1"), ch(4), ch(4), sd, false)?;
+        let to_rgb1 = ToRgb::new(vb.pp("to_rgb1"), ch(4), sd)?;
+        let mut style_convs = Vec::with_capacity(2 * levels);
+        let mut to_rgbs = Vec::with_capacity(levels);
+        for k in 0..levels {
+            let r = 8 << k;
+            let (cin, cout) = (ch(r / 2), ch(r));
+            let i = 2 * k;
+            style_convs.push(StyleConv::new(
+                vb.pp(format!("style_convs.{i}")),
+                cin,
+                cout,
+                sd,
+                true,
+            )?);
+            style_convs.push(StyleConv::new(
+                vb.pp(format!("style_convs.{}", i + 1)),
+                cout,
+                cout,
+                sd,
+                false,
+            )?);
+            to_rgbs.push(ToRgb::new(vb.pp(format!("to_rgbs.{k}")), cout, sd)?);
+        }
+        let noises = (0..2 * levels + 1)
+            .map(|i| {
+                let r = noise_resolution(i);
+                vb.get((1, 1, r, r), &format!("noises.noise{i}"))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self {
+            style_mlp,
+            constant_input,
+            style_conv1,
+            to_rgb1,
+            style_convs,
+            to_rgbs,
+            noises,
+        })
+    }
+
+    /// The mapping network: RMS-normalise the code, then Linear + leaky ReLU layers.
+    pub fn latent(&self, code: &Tensor) -> Result<Tensor> {
+        let ms = code.sqr()?.mean_keepdim(D::Minus1)?;
+        let mut x = code.broadcast_div(&(ms + EPS)?.sqrt()?)?;
+        for layer in &self.style_mlp {
+            x = fused::lrelu(layer.forward(&x)?)?;
+        }
+        Ok(x)
+    }
+
+    fn noise(&self, i: usize, batch: usize, mode: Noise, like: &Tensor) -> Result<Tensor> {
+        match mode {
+            Noise::Fixed => Ok(self.noises[i].clone()),
+            Noise::Fresh => {
+                let r = noise_resolution(i);
+                Tensor::randn(0f32, 1f32, (batch, 1, r, r), like.device())?.to_dtype(like.dtype())
+            }
+        }
+    }
+
+    /// `code` [B, style_dim] and the SFT (scale, shift) pairs for resolutions 8 .. image_size
+    /// -> the RGB image before the sigmoid [B, 3, image_size, image_size].
+    pub fn forward(
+        &self,
+        code: &Tensor,
+        conditions: &[(Tensor, Tensor)],
+        noise: Noise,
+    ) -> Result<Tensor> {
+        if conditions.len() != self.to_rgbs.len() {
+            bail!(
+                "the decoder needs {} SFT conditions, got {}",
+                self.to_rgbs.len(),
+                conditions.len()
+            );
+        }
+        let b = code.dim(0)?;
+        let latent = self.latent(code)?;
+        let c4 = self.constant_input.dim(1)?;
+        let mut out = self
+            .constant_input
+            .broadcast_as((b, c4, 4, 4))?
+            .contiguous()?;
+        out = self
+            .style_conv1
+            .forward(&out, &latent, &self.noise(0, b, noise, code)?)?;
+        let mut skip = self.to_rgb1.forward(&out, &latent, None)?;
+        for (k, (scale, shift)) in conditions.iter().enumerate() {
+            let conv_up = &self.style_convs[2 * k];
+            let conv = &self.style_convs[2 * k + 1];
+            out = conv_up.forward(&out, &latent, &self.noise(2 * k + 1, b, noise, code)?)?;
+            if scale.dims() != out.dims() || shift.dims() != out.dims() {
+                bail!(
+                    "SFT condition {k}: scale {:?} / shift {:?} do not match the features {:?}",
+                    scale.dims(),
+                    shift.dims(),
+                    out.dims()
+                );
+            }
+            out = fused::sft(out, scale, shift)?;
+            out = conv.forward(&out, &latent, &self.noise(2 * k + 2, b, noise, code)?)?;
+            skip = self.to_rgbs[k].forward(&out, &latent, Some(&skip))?;
+        }
+        Ok(skip)
+    }
+}
+
+/// Side of noise buffer `i`: 4, 8, 8, 16, 16, ...
+fn noise_resolution(i: usize) -> usize {
+    1 << ((i + 5) / 2)
+}
+
+/// `upsampler`: the StyleUNet renderer, `[B, color_dim, S, S]` -> `[B, 3, S, S]` in [0, 1]
+/// (S = image_size).
+#[derive(Debug, Clone)]
+pub struct StyleUNet {
+    conv_body_first: Conv2d,
+    conv_body_down: Vec<ResBlock>,
+    final_conv: Conv2d,
+    final_linear: Linear,
+    conv_body_up: Vec<ResBlock>,
+    condition_scale: Vec<ConditionBranch>,
+    condition_shift: Vec<ConditionBranch>,
+    /// `toRGB.k` are in the checkpoint (the release computes them only for an optional extra
+    /// output that is commented out), so they are loaded for the key set but never feed the
+    /// image.
+    _to_rgb: Vec<Conv2d>,
+    decoder: StyleGan2Decoder,
+    color_dim: usize,
+    image_size: usize,
+}
+
+impl StyleUNet {
+    pub fn new(cfg: &ModelConfig, vb: VarBuilder) -> Result<Self> {
+        cfg.validate().map_err(candle_core::Error::msg)?;
+        let levels = cfg.renderer_levels();
+        let s = cfg.image_size;
+        let u = |r: usize| cfg.unet_channels(r);
+        let conv_body_first = Conv2d::k1(vb.pp("conv_body_first"), cfg.color_dim, u(s))?;
+        let conv_body_down = (0..levels)
+            .map(|k| {
+                let r = s >> k;
+                ResBlock::new(vb.pp(format!("conv_body_down.{k}")), u(r), u(r / 2), false)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let final_conv = Conv2d::k3(vb.pp("final_conv"), u(4), u(4))?;
+        let final_linear = candle_nn::linear(u(4) * 16, cfg.style_dim, vb.pp("final_linear"))?;
+        let mut conv_body_up = Vec::with_capacity(levels);
+        let mut condition_scale = Vec::with_capacity(levels);
+        let mut condition_shift = Vec::with_capacity(levels);
+        let mut to_rgb = Vec::with_capacity(levels);
+        for k in 0..levels {
+            let r = 8 << k;
+            conv_body_up.push(ResBlock::new(
+                vb.pp(format!("conv_body_up.{k}")),
+                u(r / 2),
+                u(r),
+                true,
+            )?);
+            let dc = cfg.decoder_channels(r);
+            condition_scale.push(ConditionBranch::new(
+                vb.pp(format!("condition_scale.{k}")),
+                u(r),
+                dc,
+            )?);
+            condition_shift.push(ConditionBranch::new(
+                vb.pp(format!("condition_shift.{k}")),
+                u(r),
+                dc,
+            )?);
+            to_rgb.push(Conv2d::k1(vb.pp(format!("toRGB.{k}")), u(r), 3)?);
+        }
+        let decoder = StyleGan2Decoder::new(cfg, vb.pp("stylegan_decoder"))?;
+        Ok(Self {
+            conv_body_first,
+            conv_body_down,
+            final_conv,
+            final_linear,
+            conv_body_up,
+            condition_scale,
+            condition_shift,
+            _to_rgb: to_rgb,
+            decoder,
+            color_dim: cfg.color_dim,
+            image_size: s,
+        })
+    }
+
+    /// The coarse image [B, color_dim, S, S] -> the fine RGB image [B, 3, S, S] in [0, 1].
+    pub fn forward(&self, x: &Tensor, noise: Noise) -> Result<Tensor> {
+        let (feat, skips) = self.down(x)?;
+        let code = self.style_code(&feat)?;
+        let conditions = self.conditions(&feat, &skips)?;
+        let image = self.decoder.forward(&code, &conditions, noise)?;
+        candle_nn::ops::sigmoid(&image)
+    }
+
+    /// U-Net encoder: the 4x4 features after `final_conv` and the ResBlock outputs, deepest
+    /// first (the order the up path consumes them).
+    pub fn down(&self, x: &Tensor) -> Result<(Tensor, Vec<Tensor>)> {
+        let dims = x.dims();
+        let (c, s) = (self.color_dim, self.image_size);
+        if dims.len() != 4 || dims[1] != c || dims[2] != s || dims[3] != s {
+            bail!("the renderer expects [B, {c}, {s}, {s}], got {dims:?}");
+        }
+        if !matches!(x.dtype(), DType::F32 | DType::F64) {
+            bail!("the renderer supports f32 and f64, got {:?}", x.dtype());
+        }
+        let mut feat = fused::lrelu(self.conv_body_first.forward(x)?)?;
+        let mut skips = Vec::with_capacity(self.conv_body_down.len());
+        for block in &self.conv_body_down {
+            feat = block.forward(&feat)?;
+            skips.push(feat.clone());
+        }
+        skips.reverse();
+        let feat = fused::lrelu(self.final_conv.forward(&feat)?)?;
+        Ok((feat, skips))
+    }
+
+    /// `final_linear` on the flattened (C, H, W) 4x4 features: the style code [B, style_dim].
+    pub fn style_code(&self, feat: &Tensor) -> Result<Tensor> {
+        self.final_linear.forward(&feat.flatten_from(1)?)
+    }
+
+    /// U-Net decoder: the SFT (scale, shift) pairs for resolutions 8 .. image_size.
+    pub fn conditions(&self, feat: &Tensor, skips: &[Tensor]) -> Result<Vec<(Tensor, Tensor)>> {
+        if skips.len() != self.conv_body_up.len() {
+            bail!(
+                "the U-Net needs {} skips, got {}",
+                self.conv_body_up.len(),
+                skips.len()
+            );
+        }
+        let mut out = Vec::with_capacity(skips.len());
+        let mut prev: Option<Tensor> = None;
+        for (k, skip) in skips.iter().enumerate() {
+            // The caller's `feat` is only read; later levels add into their own fresh output.
+            let input = match prev.take() {
+                None => (feat + skip)?,
+                Some(f) => fused::add(f, skip)?,
+            };
+            let feat = self.conv_body_up[k].forward(&input)?;
+            out.push((
+                self.condition_scale[k].forward(&feat)?,
+                self.condition_shift[k].forward(&feat)?,
+            ));
+            prev = Some(feat);
+        }
+        Ok(out)
+    }
+
+    pub fn decoder(&self) -> &StyleGan2Decoder {
+        &self.decoder
+    }
+}
+
+/// Element-wise epilogues. Without gradient tracking (inference) they overwrite their first
+/// operand in place: every call site passes a tensor it has just created and owns alone, and
+/// at 512x512 each avoided allocation saves a pass over tens of MB plus its page faults. When
+/// any operand tracks gradients they are the plain candle expressions, so autograd sees the
+/// usual graph.
+mod fused {
+    use candle_core::{
+        bail, CpuStorage, DType, InplaceOp1, InplaceOp2, InplaceOp3, Layout, Result, Tensor,
+    };
+    use rayon::prelude::*;
+
+    use super::SLOPE;
+
+    /// Elements per rayon task: enough to amortise scheduling, small enough to balance.
+    const CHUNK: usize = 1 << 15;
+
+    fn in_place(dst: &Tensor, srcs: &[&Tensor]) -> bool {
+        let ok = |t: &Tensor| {
+            !t.track_op()
+                && t.device().is_cpu()
+                && t.is_contiguous()
+                && t.dtype() == dst.dtype()
+                && matches!(t.dtype(), DType::F32 | DType::F64)
+        };
+        ok(dst) && srcs.iter().all(|t| ok(t))
+    }
+
+    /// Leaky ReLU with slope 0.2.
+    pub fn lrelu(x: Tensor) -> Result<Tensor> {
+        if in_place(&x, &[]) {
+            x.inplace_op1(&LeakyRelu)?;
+            Ok(x)
+        } else {
+            crate::layers::leaky_relu(&x, SLOPE)
+        }
+    }
+
+    /// `x + y`, same shapes.
+    pub fn add(x: Tensor, y: &Tensor) -> Result<Tensor> {
+        if x.dims() == y.dims() && in_place(&x, &[y]) {
+            x.inplace_op2(y, &AddInto)?;
+            Ok(x)
+        } else {
+            x + y
+        }
+    }
+
+    /// SFT: `x * scale + shift`, same shapes.
+    pub fn sft(x: Tensor, scale: &Tensor, shift: &Tensor) -> Result<Tensor> {
+        if x.dims() != scale.dims() || x.dims() != shift.dims() {
+            bail!(
+                "SFT: scale {:?} / shift {:?} do not match the features {:?}",
+                scale.dims(),
+                shift.dims(),
+                x.dims()
+            );
+        }
+        if in_place(&x, &[scale, shift]) {
+            x.inplace_op3(scale, shift, &Sft)?;
+            Ok(x)
+        } else {
+            (x * scale)? + shift
+        }
+    }
+
+    /// StyleConv epilogue: `lrelu(y + weight * noise)`, `y` [B, C, H, W], `noise` [1 or B, 1,
+    /// H, W] (shared by the channels), `weight` [1].
+    pub fn noise_lrelu(y: Tensor, noise: &Tensor, weight: &Tensor) -> Result<Tensor> {
+        let (b, _, h, w) = y.dims4()?;
+        let (nb, nc, nh, nw) = noise.dims4()?;
+        if nc != 1 || nh != h || nw != w || (nb != 1 && nb != b) {
+            bail!(
+                "noise {:?} does not fit features {:?}",
+                noise.dims(),
+                y.dims()
+            );
+        }
+        if weight.elem_count() != 1 {
+            bail!("noise weight must hold one value, got {:?}", weight.dims());
+        }
+        if in_place(&y, &[noise, weight]) {
+            y.inplace_op3(noise, weight, &NoiseLeakyRelu)?;
+            Ok(y)
+        } else {
+            let n = noise.broadcast_mul(&weight.reshape((1, 1, 1, 1))?)?;
+            crate::layers::leaky_relu(&y.broadcast_add(&n)?, SLOPE)
+        }
+    }
+
+    trait Elem:
+        Copy
+        + Send
+        + Sync
+        + PartialOrd
+        + std::ops::Add<Output = Self>
+        + std::ops::Mul<Output = Self>
+    {
+        const SLOPE: Self;
+    }
+    impl Elem for f32 {
+        const SLOPE: Self = 0.2;
+    }
+    impl Elem for f64 {
+        const SLOPE: Self = 0.2;
+    }
+
+    #[inline(always)]
+    fn leaky<T: Elem>(v: T) -> T {
+        // As `max(v, 0.2 v)`, the expression of the tracked path.
+        let s = v * T::SLOPE;
+        if v > s {
+            v
+        } else {
+            s
+        }
+    }
+
+    fn slice<'a, T>(v: &'a [T], l: &Layout) -> Result<&'a [T]> {
+        match l.contiguous_offsets() {
+            Some((a, b)) => Ok(&v[a..b]),
+            None => bail!("fused op needs contiguous operands"),
+        }
+    }
+
+    fn slice_mut<'a, T>(v: &'a mut [T], l: &Layout) -> Result<&'a mut [T]> {
+        match l.contiguous_offsets() {
+            Some((a, b)) => Ok(&mut v[a..b]),
+            None => bail!("fused op needs contiguous operands"),
+        }
+    }
+
+    struct LeakyRelu;
+    impl InplaceOp1 for LeakyRelu {
+        fn name(&self) -> &'static str {
+            "leaky-relu-inplace"
+        }
+        fn cpu_fwd(&self, s: &mut CpuStorage, l: &Layout) -> Result<()> {
+            fn run<T: Elem>(d: &mut [T]) {
+                d.par_chunks_mut(CHUNK)
+                    .for_each(|c| c.iter_mut().for_each(|v| *v = leaky(*v)));
+            }
+            match s {
+                CpuStorage::F32(v) => run(slice_mut(v, l)?),
+                CpuStorage::F64(v) => run(slice_mut(v, l)?),
+                _ => bail!("leaky-relu-inplace: f32 and f64 only"),
+            }
+            Ok(())
+        }
+    }
+
+    struct AddInto;
+    impl InplaceOp2 for AddInto {
+        fn name(&self) -> &'static str {
+            "add-inplace"
+        }
+        fn cpu_fwd(
+            &self,
+            s1: &mut CpuStorage,
+            l1: &Layout,
+            s2: &CpuStorage,
+            l2: &Layout,
+        ) -> Result<()> {
+            fn run<T: Elem>(d: &mut [T], a: &[T]) {
+                d.par_chunks_mut(CHUNK)
+                    .zip(a.par_chunks(CHUNK))
+                    .for_each(|(d, a)| d.iter_mut().zip(a).for_each(|(d, &a)| *d = *d + a));
+            }
+            match (s1, s2) {
+                (CpuStorage::F32(d), CpuStorage::F32(a)) => run(slice_mut(d, l1)?, slice(a, l2)?),
+                (CpuStorage::F64(d), CpuStorage::F64(a)) => run(slice_mut(d, l1)?, slice(a, l2)?),
+                _ => bail!("add-inplace: matching f32 or f64 operands only"),
+            }
+            Ok(())
+        }
+    }
+
+    struct Sft;
+    impl InplaceOp3 for Sft {
+        fn name(&self) -> &'static str {
+            "sft-inplace"
+        }
+        fn cpu_fwd(
+            &self,
+            s1: &mut CpuStorage,
+            l1: &Layout,
+            s2: &CpuStorage,
+            l2: &Layout,
+            s3: &CpuStorage,
+            l3: &Layout,
+        ) -> Result<()> {
+            fn run<T: Elem>(d: &mut [T], scale: &[T], shift: &[T]) {
+                d.par_chunks_mut(CHUNK)
+                    .zip(scale.par_chunks(CHUNK).zip(shift.par_chunks(CHUNK)))
+                    .for_each(|(d, (a, b))| {
+                        for ((d, &a), &b) in d.iter_mut().zip(a).zip(b) {
+                            *d = *d * a + b;
+                        }
+                    });
+            }
+            match (s1, s2, s3) {
+                (CpuStorage::F32(d), CpuStorage::F32(a), CpuStorage::F32(b)) => {
+                    run(slice_mut(d, l1)?, slice(a, l2)?, slice(b, l3)?)
+                }
+                (CpuStorage::F64(d), CpuStorage::F64(a), CpuStorage::F64(b)) => {
+                    run(slice_mut(d, l1)?, slice(a, l2)?, slice(b, l3)?)
+                }
+                _ => bail!("sft-inplace: matching f32 or f64 operands only"),
+            }
+            Ok(())
+        }
+    }
+
+    struct NoiseLeakyRelu;
+    impl InplaceOp3 for NoiseLeakyRelu {
+        fn name(&self) -> &'static str {
+            "noise-leaky-relu-inplace"
+        }
+        fn cpu_fwd(
+            &self,
+            s1: &mut CpuStorage,
+            l1: &Layout,
+            s2: &CpuStorage,
+            l2: &Layout,
+            s3: &CpuStorage,
+            l3: &Layout,
+        ) -> Result<()> {
+            let (b, c, h, w) = l1.shape().dims4()?;
+            let plane = h * w;
+            let noise_batch = l2.shape().dims()[0];
+            fn run<T: Elem>(
+                d: &mut [T],
+                noise: &[T],
+                weight: T,
+                c: usize,
+                plane: usize,
+                per_sample: bool,
+            ) {
+                d.par_chunks_mut(plane).enumerate().for_each(|(p, d)| {
+                    let n = if per_sample {
+                        &noise[(p / c) * plane..][..plane]
+                    } else {
+                        &noise[..plane]
+                    };
+                    for (d, &n) in d.iter_mut().zip(n) {
+                        *d = leaky(*d + weight * n);
+                    }
+                });
+            }
+            let per_sample = noise_batch == b && b > 1;
+            if plane == 0 || c == 0 {
+                return Ok(());
+            }
+            match (s1, s2, s3) {
+                (CpuStorage::F32(d), CpuStorage::F32(n), CpuStorage::F32(wt)) => {
+                    let wt = slice(wt, l3)?[0];
+                    run(slice_mut(d, l1)?, slice(n, l2)?, wt, c, plane, per_sample)
+                }
+                (CpuStorage::F64(d), CpuStorage::F64(n), CpuStorage::F64(wt)) => {
+                    let wt = slice(wt, l3)?[0];
+                    run(slice_mut(d, l1)?, slice(n, l2)?, wt, c, plane, per_sample)
+                }
+                _ => bail!("noise-leaky-relu-inplace: matching f32 or f64 operands only"),
+            }
+            Ok(())
+        }
+    }
+}
+
+/// Bilinear x2 upsampling, `align_corners=False` (PyTorch `interpolate(scale_factor=2)`), of
+/// the last two dims of a 4-D f32/f64 tensor; differentiable.
+pub fn upsample2x(x: &Tensor) -> Result<Tensor> {
+    x.dims4()?;
+    x.contiguous()?.apply_op1(resample2x::Up)
+}
+
+/// Bilinear x0.5 downsampling, `align_corners=False`, of even-sized planes: each output is the
+/// mean of a 2x2 block (the source position `2o + 0.5` lies halfway between two samples).
+pub fn downsample2x(x: &Tensor) -> Result<Tensor> {
+    let (_, _, h, w) = x.dims4()?;
+    if h % 2 != 0 || w % 2 != 0 {
+        bail!("downsample2x needs even sizes, got {h}x{w}");
+    }
+    x.contiguous()?.apply_op1(resample2x::Down)
+}
+
+/// CPU stencils for the factor-two resizes, one rayon task per (batch, channel) plane.
+mod resample2x {
+    use std::ops::{Add, Mul};
+
+    use candle_core::{bail, CpuStorage, CustomOp1, Layout, Result, Shape, Tensor};
+    use rayon::prelude::*;
+
+    pub trait Sample: Copy + Send + Sync + Add<Output = Self> + Mul<Output = Self> {
+        const ZERO: Self;
+        const QUARTER: Self;
+        const THREE_QUARTERS: Self;
+    }
+    impl Sample for f32 {
+        const ZERO: Self = 0.0;
+        const QUARTER: Self = 0.25;
+        const THREE_QUARTERS: Self = 0.75;
+    }
+    impl Sample for f64 {
+        const ZERO: Self = 0.0;
+        const QUARTER: Self = 0.25;
+        const THREE_QUARTERS: Self = 0.75;
+    }
+
+    /// Upsamples one line: output 2j sits at source j - 1/4, output 2j + 1 at j + 1/4, clamped
+    /// at the borders. Output 0 is copied, as PyTorch clamps its source to 0 with weights (1, 0).
+    fn up_line<T: Sample>(x: &[T], out: &mut [T]) {
+        let n = x.len();
+        let (q, t) = (T::QUARTER, T::THREE_QUARTERS);
+        for j in 0..n {
+            let c = x[j];
+            out[2 * j] = if j == 0 { c } else { q * x[j - 1] + t * c };
+            out[2 * j + 1] = t * c + q * x[(j + 1).min(n - 1)];
+        }
+    }
+
+    /// Adjoint of `up_line` (for the backward pass): gathers the weights each input gave.
+    fn up_line_adjoint<T: Sample>(g: &[T], out: &mut [T]) {
+        let n = out.len();
+        let m = g.len();
+        let (q, t) = (T::QUARTER, T::THREE_QUARTERS);
+        for (j, o) in out.iter_mut().enumerate() {
+            let mut v = t * (g[2 * j] + g[2 * j + 1]);
+            // Output 2j - 1 gave x[j] a quarter; for j == 0 output 0 gave it all of its weight.
+            v = v + if j == 0 { q * g[0] } else { q * g[2 * j - 1] };
+            // Output 2j + 2 gave x[j] a quarter; past the end, output 2n - 1 did (clamped).
+            v = v + if j + 1 < n {
+                q * g[2 * j + 2]
+            } else {
+                q * g[m - 1]
+            };
+            *o = v;
+        }
+    }
+
+    fn up_plane<T: Sample>(src: &[T], h: usize, w: usize, dst: &mut [T]) {
+        let w2 = 2 * w;
+        let mut tmp = vec![T::ZERO; h * w2];
+        for (row, out) in src.chunks_exact(w).zip(tmp.chunks_exact_mut(w2)) {
+            up_line(row, out);
+        }
+        let (q, t) = (T::QUARTER, T::THREE_QUARTERS);
+        for i in 0..h {
+            let cur = &tmp[i * w2..(i + 1) * w2];
+            let prev = &tmp[i.saturating_sub(1) * w2..][..w2];
+            let next = &tmp[(i + 1).min(h - 1) * w2..][..w2];
+            let (even, odd) = dst[2 * i * w2..(2 * i + 2) * w2].split_at_mut(w2);
+            if i == 0 {
+                even.copy_from_slice(cur);
+            } else {
+                for ((o, &p), &c) in even.iter_mut().zip(prev).zip(cur) {
+                    *o = q * p + t * c;
+                }
+            }
+            for ((o, &c), &nx) in odd.iter_mut().zip(cur).zip(next) {
+                *o = t * c + q * nx;
+            }
+        }
+    }
+
+    /// `g` [2h, 2w] -> `dst` [h, w], the transpose of `up_plane`.
+    fn up_plane_adjoint<T: Sample>(g: &[T], h: usize, w: usize, dst: &mut [T]) {
+        let w2 = 2 * w;
+        let mut tmp = vec![T::ZERO; 2 * h * w];
+        for (row, out) in g.chunks_exact(w2).zip(tmp.chunks_exact_mut(w)) {
+            up_line_adjoint(row, out);
+        }
+        let mut col_in = vec![T::ZERO; 2 * h];
+        let mut col_out = vec![T::ZERO; h];
+        for j in 0..w {
+            for (r, v) in col_in.iter_mut().enumerate() {
+                *v = tmp[r * w + j];
+            }
+            up_line_adjoint(&col_in, &mut col_out);
+            for (i, &v) in col_out.iter().enumerate() {
+                dst[i * w + j] = v;
+            }
+        }
+    }
+
+    /// `src` [2h, 2w] -> `dst` [h, w]: 2x2 means, grouped as PyTorch's bilinear kernel does.
+    fn down_plane<T: Sample>(src: &[T], w: usize, dst: &mut [T]) {
+        let w2 = 2 * w;
+        for (i, out) in dst.chunks_exact_mut(w).enumerate() {
+            let r0 = &src[2 * i * w2..(2 * i + 1) * w2];
+            let r1 = &src[(2 * i + 1) * w2..(2 * i + 2) * w2];
+            for (j, o) in out.iter_mut().enumerate() {
+                let top = r0[2 * j] + r0[2 * j + 1];
+                let bottom = r1[2 * j] + r1[2 * j + 1];
+                *o = T::QUARTER * (top + bottom);
+            }
+        }
+    }
+
+    #[derive(Clone, Copy)]
+    enum Kind {
+        Up,
+        UpAdjoint,
+        Down,
+    }
+
+    fn run<T: Sample>(src: &[T], planes: usize, h: usize, w: usize, kind: Kind) -> Vec<T> {
+        let (ih, iw, oh, ow) = match kind {
+            Kind::Up => (h, w, 2 * h, 2 * w),
+            Kind::UpAdjoint | Kind::Down => (h, w, h / 2, w / 2),
+        };
+        let mut dst = vec![T::ZERO; planes * oh * ow];
+        if oh * ow == 0 {
+            return dst;
+        }
+        dst.par_chunks_mut(oh * ow)
+            .zip(src.par_chunks(ih * iw))
+            .for_each(|(d, s)| match kind {
+                Kind::Up => up_plane(s, ih, iw, d),
+                Kind::UpAdjoint => up_plane_adjoint(s, oh, ow, d),
+                Kind::Down => down_plane(s, ow, d),
+            });
+        dst
+    }
+
+    fn fwd(kind: Kind, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
+        let (b, c, h, w) = layout.shape().dims4()?;
+        let Some((start, end)) = layout.contiguous_offsets() else {
+            bail!("resample2x needs a contiguous input");
+        };
+        let out_shape = match kind {
+            Kind::Up => (b, c, 2 * h, 2 * w),
+            Kind::UpAdjoint | Kind::Down => {
+                if h % 2 != 0 || w % 2 != 0 {
+                    bail!("resample2x: halving needs even sizes, got {h}x{w}");
+                }
+                (b, c, h / 2, w / 2)
+            }
+        };
+        let planes = b * c;
+        let out = match storage {
+            CpuStorage::F32(v) => CpuStorage::F32(run(&v[start..end], planes, h, w, kind)),
+            CpuStorage::F64(v) => CpuStorage::F64(run(&v[start..end], planes, h, w, kind)),
+            _ => bail!("resample2x supports f32 and f64 only"),
+        };
+        Ok((out, out_shape.into()))
+    }
+
+    /// Bilinear x2 upsampling.
+    pub struct Up;
+    /// Its transpose, the gradient of [`Up`].
+    pub struct UpAdjoint;
+    /// 2x2 mean, the x0.5 bilinear downsampling.
+    pub struct Down;
+
+    impl CustomOp1 for Up {
+        fn name(&self) -> &'static str {
+            "upsample2x"
+        }
+        fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+            fwd(Kind::Up, s, l)
+        }
+        fn bwd(&self, _arg: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+            Ok(Some(grad.contiguous()?.apply_op1(UpAdjoint)?))
+        }
+    }
+
+    impl CustomOp1 for UpAdjoint {
+        fn name(&self) -> &'static str {
+            "upsample2x-adjoint"
+        }
+        fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+            fwd(Kind::UpAdjoint, s, l)
+        }
+        fn bwd(&self, _arg: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+            Ok(Some(grad.contiguous()?.apply_op1(Up)?))
+        }
+    }
+
+    impl CustomOp1 for Down {
+        fn name(&self) -> &'static str {
+            "downsample2x"
+        }
+        fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+            fwd(Kind::Down, s, l)
+        }
+        fn bwd(&self, _arg: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+            let (_, _, h, w) = grad.dims4()?;
+            Ok(Some((grad.upsample_nearest2d(2 * h, 2 * w)? * 0.25)?))
+        }
+    }
+}
