@@ -268,6 +268,7 @@ fn a_batch_equals_single_images_exactly() {
         case(3, 16, 64, 60, 24, 3, 3, 1, 1),
         case(3, 7, 21, 18, 9, 3, 3, 2, 1),
         case(2, 32, 20, 20, 8, 1, 1, 1, 0),
+        case(2, 240, 9, 9, 8, 3, 3, 1, 1),
     ];
     for (ci, c) in shapes.iter().enumerate() {
         let x = tensor(&[c.b, c.cin, c.h, c.w], 500 + ci as u64)

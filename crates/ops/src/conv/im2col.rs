@@ -43,12 +43,13 @@ fn in_row(g: &Geom, r: usize, ky: usize) -> Option<usize> {
     (iy < g.h).then_some(iy)
 }
 
-/// Patch matrix `[cin*kh*kw, (r1-r0)*ow]` of output rows `[r0, r1)` of one image `xb`.
+/// Patch matrix `[c*kh*kw, (r1-r0)*ow]` of output rows `[r0, r1)` of the `c` channel planes
+/// in `xb` (all of an image's, or a range of them).
 fn im2col_band<T: Elem>(xb: &[T], g: &Geom, r0: usize, r1: usize, col: &mut [T]) {
     let nb = (r1 - r0) * g.ow;
     let (s, w) = (g.stride, g.w);
     let mut kk = 0;
-    for ci in 0..g.cin {
+    for ci in 0..xb.len() / (g.h * w) {
         let plane = &xb[ci * g.h * w..(ci + 1) * g.h * w];
         for ky in 0..g.kh {
             for kx in 0..g.kw {
@@ -121,8 +122,19 @@ fn is_pointwise(g: &Geom) -> bool {
     g.kh == 1 && g.kw == 1 && g.stride == 1 && g.ph == 0 && g.pw == 0
 }
 
+/// Images up to this many output pixels with at least `SPLIT_K_MIN` patch rows split the
+/// reduction over input channels instead of the pixels over bands: with few pixels per band,
+/// every band task would repack the whole (large) weight matrix.
+const SPLIT_K_MAX_PIXELS: usize = 1024;
+const SPLIT_K_MIN: usize = 2048;
+
 /// `y = conv(x, w) [+ bias]`; `y` is fully overwritten.
 pub(crate) fn forward<T: Elem>(x: &[T], w: &[T], bias: Option<&[T]>, g: &Geom, y: &mut [T]) {
+    let threads = rayon::current_num_threads();
+    if threads > 1 && g.oh * g.ow <= SPLIT_K_MAX_PIXELS && g.k() >= SPLIT_K_MIN && g.cin >= threads
+    {
+        return forward_split_k(x, w, bias, g, y, threads);
+    }
     let k = g.k();
     let (plane_in, plane_out) = (g.h * g.w, g.oh * g.ow);
     let threads = rayon::current_num_threads();
@@ -188,6 +200,70 @@ pub(crate) fn forward<T: Elem>(x: &[T], w: &[T], bias: Option<&[T]>, g: &Geom, y
         let mut col = Vec::new();
         (0..tasks).for_each(|t| run(&mut col, t));
     }
+}
+
+/// [`forward`] for small images: `chunks` tasks per image each take a range of input
+/// channels (their patch rows and weight columns) over the whole image into a partial output;
+/// the partials are then added in chunk order (so results do not depend on the batch size).
+fn forward_split_k<T: Elem>(
+    x: &[T],
+    w: &[T],
+    bias: Option<&[T]>,
+    g: &Geom,
+    y: &mut [T],
+    chunks: usize,
+) {
+    let (k, khw) = (g.k(), g.kh * g.kw);
+    let (plane_in, plane_out) = (g.h * g.w, g.oh * g.ow);
+    let per = g.cin.div_ceil(chunks);
+    let chunks = g.cin.div_ceil(per);
+    let partials: Vec<Vec<T>> = (0..g.b * chunks)
+        .into_par_iter()
+        .map(|task| {
+            let (bi, c) = (task / chunks, task % chunks);
+            let (c0, c1) = (c * per, ((c + 1) * per).min(g.cin));
+            let xb = &x[(bi * g.cin + c0) * plane_in..(bi * g.cin + c1) * plane_in];
+            let rows = (c1 - c0) * khw;
+            let mut col = vec![T::ZERO; rows * plane_out];
+            im2col_band(xb, g, 0, g.oh, &mut col);
+            let mut part = vec![T::ZERO; g.cout * plane_out];
+            let lhs = Mat {
+                ptr: w[c0 * khw..].as_ptr(),
+                rs: k as isize,
+                cs: 1,
+            };
+            let rhs = Mat {
+                ptr: col.as_ptr(),
+                rs: plane_out as isize,
+                cs: 1,
+            };
+            // SAFETY: w columns [c0*khw, c1*khw) of every row, col [rows, plane_out], part [cout, plane_out].
+            unsafe {
+                gemm(
+                    g.cout,
+                    plane_out,
+                    rows,
+                    part.as_mut_ptr(),
+                    plane_out as isize,
+                    1,
+                    false,
+                    lhs,
+                    rhs,
+                    1,
+                )
+            };
+            part
+        })
+        .collect();
+    y.par_chunks_mut(plane_out).enumerate().for_each(|(i, yr)| {
+        let (bi, co) = (i / g.cout, i % g.cout);
+        yr.fill(bias.map_or(T::ZERO, |b| b[co]));
+        for p in &partials[bi * chunks..(bi + 1) * chunks] {
+            for (a, v) in yr.iter_mut().zip(&p[co * plane_out..(co + 1) * plane_out]) {
+                *a += *v;
+            }
+        }
+    });
 }
 
 /// `dL/dw [cout, cin*kh*kw] = sum over images and pixels of gy x patches`.

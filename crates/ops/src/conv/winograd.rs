@@ -2,8 +2,9 @@
 //! tile costs 36 multiplies per input/output channel pair instead of 144. Per task (a band of
 //! tile rows of one image): transform the 6x6 input tiles (`V = B^T d B`), run 36 GEMMs
 //! `M[xi] = U[xi] V[xi]` over channels, transform back (`Y = A^T M A`) into the output.
-//! The points are 0, +-1, +-2 (and infinity), the usual choice: f32 results differ from a direct
-//! convolution by a few ulps of the largest partial sums (measured in tests/conv.rs).
+//! The weight gradient uses the same tiles (Winograd's transposition principle). The points are
+//! 0, +-1, +-2 (and infinity), the usual choice; in f32 the results differ from a direct sum by
+//! up to ~4e-6 of `conv(|x|, |w|)`, about 10x the rounding of the GEMM path (tests/conv.rs).
 
 // The transforms index several small arrays with the same tile coordinates; ranges read
 // closer to the matrix formulas than zipped iterators.
@@ -15,9 +16,10 @@ use rayon::prelude::*;
 
 /// Tiles transformed side by side in local arrays, so the transforms vectorise across tiles.
 const LANES: usize = 16;
-/// Tiles per task: enough rows for the GEMMs (`m` = tiles) to run their wide micro-kernels,
-/// while `V` and `M` (36 x channels x tiles each) stay within a core's share of L3.
-const TILES_PER_TASK: usize = 160;
+/// Tiles per task: enough for the GEMMs (`m` = tiles) to run their wide micro-kernels, while
+/// `V` and `M` (36 x channels x tiles each) stay small (64..160 measured within 10% of each
+/// other on the benchmark shapes).
+const TILES_PER_TASK: usize = 96;
 
 pub(crate) fn eligible(g: &Geom) -> bool {
     g.kh == 3 && g.kw == 3 && g.stride == 1 && g.ph == g.pw

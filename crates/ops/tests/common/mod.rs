@@ -82,7 +82,7 @@ pub const fn case(
 
 /// Shapes that reach every edge of the kernels: odd sizes, images smaller than one Winograd
 /// tile or GEMM band, several bands and tasks, batch > 1, strides 1-3, paddings 0-2, 1x1,
-/// 4x4, 5x5 and rectangular kernels, 3 input channels.
+/// 4x4, 5x5 and rectangular kernels, 3 input channels, split reductions.
 pub const CASES: &[Case] = &[
     case(1, 3, 17, 13, 5, 3, 3, 1, 1),
     case(2, 4, 9, 11, 6, 3, 3, 1, 0),
@@ -102,6 +102,9 @@ pub const CASES: &[Case] = &[
     case(1, 3, 8, 8, 4, 3, 3, 3, 1),
     case(1, 5, 6, 7, 3, 1, 1, 1, 1),
     case(2, 9, 19, 19, 11, 3, 3, 1, 1),
+    // Few pixels, many patch rows: the reduction is split over input-channel ranges.
+    case(2, 240, 9, 9, 8, 3, 3, 1, 1),
+    case(1, 230, 12, 11, 6, 3, 3, 2, 1),
 ];
 
 pub fn spec(c: &Case) -> Conv2dSpec {
