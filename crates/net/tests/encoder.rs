@@ -2,7 +2,6 @@
 //! the `tiny` preset (`tools/reference/net_reference.py`).
 
 use std::collections::{BTreeMap, HashMap};
-use std::path::PathBuf;
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
@@ -10,34 +9,20 @@ use gagavatar_net::dino::{f_id, preprocess, Dinov2};
 use gagavatar_net::dpt::DptHead;
 use gagavatar_net::ModelConfig;
 
+mod common;
+use common::{assert_close, get, load};
+
 // The goldens are float64 results (of float32 weights and inputs) stored as f32.
 /// Resize + normalise in f32: rounding of a few multiply-adds, amplified 4.4x by 1/std
 /// (5e-7 measured).
-const PREPROCESS_TOL: f32 = 1e-5;
+const PREPROCESS_TOL: f64 = 1e-5;
 /// Features after four ViT blocks or the DPT head's ~20 convolutions computed in f32 (sums of
 /// hundreds of products, polynomial exp/erf): ~1e-7 relative rounding per layer grows to a few
 /// 1e-6 on O(1-10) values (3e-6 measured).
-const FEATURE_TOL: f32 = 1e-4;
+const FEATURE_TOL: f64 = 1e-4;
 /// The same in f64: only the goldens' own f32 storage (half an ulp of values up to ~16) remains
 /// (5e-7 measured), tight enough to catch a wrong epsilon or a swapped resize rule.
-const F64_TOL: f32 = 2e-6;
-
-fn golden_path(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/golden")
-        .join(name)
-}
-
-fn load(name: &str) -> HashMap<String, Tensor> {
-    let path = golden_path(name);
-    match candle_core::safetensors::load(&path, &Device::Cpu) {
-        Ok(m) => m,
-        Err(e) => panic!(
-            "cannot read golden {} ({e}); generate it with tools/reference/net_reference.py",
-            path.display()
-        ),
-    }
-}
+const F64_TOL: f64 = 2e-6;
 
 fn weights(dtype: DType) -> VarBuilder<'static> {
     VarBuilder::from_tensors(load("tiny_weights.safetensors"), dtype, &Device::Cpu)
@@ -45,42 +30,6 @@ fn weights(dtype: DType) -> VarBuilder<'static> {
 
 fn io() -> HashMap<String, Tensor> {
     load("tiny_io.safetensors")
-}
-
-fn get<'a>(io: &'a HashMap<String, Tensor>, name: &str) -> &'a Tensor {
-    io.get(name)
-        .unwrap_or_else(|| panic!("golden tiny_io.safetensors has no `{name}`"))
-}
-
-/// Fails with the worst element's index, expected and actual value.
-fn assert_close(what: &str, actual: &Tensor, expected: &Tensor, tol: f32) {
-    assert_eq!(actual.dims(), expected.dims(), "{what}: shape");
-    let a = actual
-        .to_dtype(DType::F32)
-        .and_then(|t| t.flatten_all())
-        .and_then(|t| t.to_vec1::<f32>())
-        .expect("actual to vec");
-    let e = expected
-        .to_dtype(DType::F32)
-        .and_then(|t| t.flatten_all())
-        .and_then(|t| t.to_vec1::<f32>())
-        .expect("expected to vec");
-    let mut worst = (0usize, 0f32);
-    for (i, (x, y)) in a.iter().zip(&e).enumerate() {
-        let d = (x - y).abs();
-        if d.is_nan() || d > worst.1 {
-            worst = (i, if d.is_nan() { f32::INFINITY } else { d });
-        }
-    }
-    let (i, d) = worst;
-    eprintln!("{what}: max abs error {d:.3e} at flat index {i}");
-    assert!(
-        d <= tol,
-        "{what}: flat index {i} of {:?}: expected {}, actual {} (|diff| {d:.3e} > {tol:.0e})",
-        actual.dims(),
-        e[i],
-        a[i]
-    );
 }
 
 fn tiny() -> ModelConfig {

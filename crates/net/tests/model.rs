@@ -2,7 +2,6 @@
 //! `tiny` preset, key layout against the release's state dict, and bad inputs.
 
 use std::collections::HashMap;
-use std::path::PathBuf;
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
@@ -11,24 +10,15 @@ use gagavatar_net::model::GagAvatar;
 use gagavatar_net::style_unet::Noise;
 use gagavatar_net::{ModelConfig, NetError};
 
+mod common;
+use common::{assert_close as compare, load};
+
 /// Features and Gaussian attributes: f32 network vs the f64 reference through a few dozen
 /// layers of O(1) activations; the bar is 1e-4.
 const FEATURE_TOL: f64 = 1e-4;
 /// Images after splatting / the renderer: 1e-3 (the bar), allowing f32 accumulation
 /// over thousands of Gaussians per pixel and the renderer's depth.
 const IMAGE_TOL: f64 = 1e-3;
-
-fn golden(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/golden")
-        .join(name)
-}
-
-fn load(name: &str) -> HashMap<String, Tensor> {
-    candle_core::safetensors::load(golden(name), &Device::Cpu).unwrap_or_else(|e| {
-        panic!("reading golden {name}: {e} (regenerate: see tools/reference/README.md)")
-    })
-}
 
 fn tiny_model() -> (GagAvatar, HashMap<String, Tensor>) {
     let w = load("tiny_weights.safetensors");
@@ -39,41 +29,6 @@ fn tiny_model() -> (GagAvatar, HashMap<String, Tensor>) {
         GagAvatar::new(&cfg, vb).unwrap(),
         load("tiny_io.safetensors"),
     )
-}
-
-/// Max |a - b| with its flat index, after checking shapes.
-fn compare(name: &str, got: &Tensor, want: &Tensor, tol: f64) -> f64 {
-    assert_eq!(got.dims(), want.dims(), "{name}: shape");
-    let g: Vec<f64> = got
-        .to_dtype(DType::F64)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap();
-    let w: Vec<f64> = want
-        .to_dtype(DType::F64)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap();
-    let (mut worst, mut at) = (0.0f64, 0usize);
-    for (i, (a, b)) in g.iter().zip(&w).enumerate() {
-        let d = (a - b).abs();
-        if d > worst || d.is_nan() {
-            worst = d;
-            at = i;
-        }
-    }
-    assert!(
-        worst <= tol,
-        "{name}: max |diff| {worst:.3e} > {tol:.0e} at flat index {at}: expected {}, got {}",
-        w[at],
-        g[at]
-    );
-    eprintln!("{name}: max |diff| {worst:.3e}");
-    worst
 }
 
 #[test]

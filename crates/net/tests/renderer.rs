@@ -4,7 +4,6 @@
 //! their gradients.
 
 use std::collections::{BTreeMap, HashMap};
-use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 use candle_core::{DType, Device, Shape, Tensor, Var};
@@ -15,6 +14,9 @@ use gagavatar_net::style_unet::{
 };
 use gagavatar_net::ModelConfig;
 use gagavatar_ops::{resize, ResizeMode};
+
+mod common;
+use common::{assert_close, get, load, to_vec_f64};
 
 /// The fine image after ~40 f32 convolutions whose sums PyTorch orders differently (GEMM
 /// blocking, the fused grouped conv of the modulated layers), then a sigmoid (slope <= 1/4):
@@ -38,59 +40,6 @@ const RESIZE_TOL: f64 = 1e-13;
 const INPUT_STEP: f64 = 1e-3;
 const WEIGHT_STEP: f64 = 1e-5;
 const GRAD_REL_TOL: f64 = 1e-5;
-
-fn golden_path(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/golden")
-        .join(name)
-}
-
-fn load(name: &str) -> HashMap<String, Tensor> {
-    let path = golden_path(name);
-    match candle_core::safetensors::load(&path, &Device::Cpu) {
-        Ok(m) => m,
-        Err(e) => panic!(
-            "cannot read golden {} ({e}); generate it with tools/reference/net_reference.py",
-            path.display()
-        ),
-    }
-}
-
-fn get<'a>(io: &'a HashMap<String, Tensor>, name: &str) -> &'a Tensor {
-    io.get(name)
-        .unwrap_or_else(|| panic!("golden tiny_io.safetensors has no `{name}`"))
-}
-
-fn to_vec_f64(t: &Tensor) -> Vec<f64> {
-    t.to_dtype(DType::F64)
-        .and_then(|t| t.flatten_all())
-        .and_then(|t| t.to_vec1::<f64>())
-        .expect("tensor to vec")
-}
-
-/// Largest absolute difference; fails with its index, expected and actual value.
-fn assert_close(what: &str, actual: &Tensor, expected: &Tensor, tol: f64) -> f64 {
-    assert_eq!(actual.dims(), expected.dims(), "{what}: shape");
-    let a = to_vec_f64(actual);
-    let e = to_vec_f64(expected);
-    let mut worst = (0usize, 0f64);
-    for (i, (x, y)) in a.iter().zip(&e).enumerate() {
-        let d = (x - y).abs();
-        if d.is_nan() || d > worst.1 {
-            worst = (i, if d.is_nan() { f64::INFINITY } else { d });
-        }
-    }
-    let (i, d) = worst;
-    eprintln!("{what}: max abs error {d:.3e} at flat index {i}");
-    assert!(
-        d <= tol,
-        "{what}: flat index {i} of {:?}: expected {}, actual {} (|diff| {d:.3e} > {tol:.0e})",
-        actual.dims(),
-        e[i],
-        a[i]
-    );
-    d
-}
 
 /// Seeded weights of realistic magnitude for whatever the modules ask for, recording every
 /// request (name, shape). With `vars`, the tensors are trainable variables.
