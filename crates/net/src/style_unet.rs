@@ -4,9 +4,6 @@
 //! generates the image; a final sigmoid maps it to [0, 1].
 //!
 //! Efficiency choices (all exact in real arithmetic, so they change results only by rounding):
-//! - The x2 / x0.5 bilinear resizes (`align_corners=False`) are direct stencils (custom ops
-//!   with backward) instead of dense interpolation-matrix products: for an exact factor of two
-//!   each output needs two taps per axis, the matrices would cost `O(n)` per output.
 //! - An up ResBlock applies its 1x1 skip before the x2 resize instead of after: both are linear,
 //!   one mixes channels and the other pixels, so they commute, and at the low resolution the
 //!   1x1 does a quarter of the work.
@@ -21,7 +18,7 @@ use std::f64::consts::SQRT_2;
 
 use candle_core::{bail, DType, Module, Result, Tensor, D};
 use candle_nn::{Linear, VarBuilder};
-use gagavatar_ops::{conv2d, Conv2dSpec};
+use gagavatar_ops::{conv2d, resize, Conv2dSpec, ResizeMode};
 
 use crate::config::ModelConfig;
 use crate::layers::Conv2d;
@@ -903,223 +900,16 @@ mod fused {
 /// Bilinear x2 upsampling, `align_corners=False` (PyTorch `interpolate(scale_factor=2)`), of
 /// the last two dims of a 4-D f32/f64 tensor; differentiable.
 pub fn upsample2x(x: &Tensor) -> Result<Tensor> {
-    x.dims4()?;
-    x.contiguous()?.apply_op1(resample2x::Up)
+    let (_, _, h, w) = x.dims4()?;
+    resize(x, 2 * h, 2 * w, ResizeMode::HalfPixel)
 }
 
-/// Bilinear x0.5 downsampling, `align_corners=False`, of even-sized planes: each output is the
-/// mean of a 2x2 block (the source position `2o + 0.5` lies halfway between two samples).
+/// Bilinear x0.5 downsampling, `align_corners=False`, of even-sized planes (each output is the
+/// mean of a 2x2 block: the source position `2o + 0.5` lies halfway between two samples).
 pub fn downsample2x(x: &Tensor) -> Result<Tensor> {
     let (_, _, h, w) = x.dims4()?;
     if h % 2 != 0 || w % 2 != 0 {
         bail!("downsample2x needs even sizes, got {h}x{w}");
     }
-    x.contiguous()?.apply_op1(resample2x::Down)
-}
-
-/// CPU stencils for the factor-two resizes, one rayon task per (batch, channel) plane.
-mod resample2x {
-    use std::ops::{Add, Mul};
-
-    use candle_core::{bail, CpuStorage, CustomOp1, Layout, Result, Shape, Tensor};
-    use rayon::prelude::*;
-
-    pub trait Sample: Copy + Send + Sync + Add<Output = Self> + Mul<Output = Self> {
-        const ZERO: Self;
-        const QUARTER: Self;
-        const THREE_QUARTERS: Self;
-    }
-    impl Sample for f32 {
-        const ZERO: Self = 0.0;
-        const QUARTER: Self = 0.25;
-        const THREE_QUARTERS: Self = 0.75;
-    }
-    impl Sample for f64 {
-        const ZERO: Self = 0.0;
-        const QUARTER: Self = 0.25;
-        const THREE_QUARTERS: Self = 0.75;
-    }
-
-    /// Upsamples one line: output 2j sits at source j - 1/4, output 2j + 1 at j + 1/4, clamped
-    /// at the borders. Output 0 is copied, as PyTorch clamps its source to 0 with weights (1, 0).
-    fn up_line<T: Sample>(x: &[T], out: &mut [T]) {
-        let n = x.len();
-        let (q, t) = (T::QUARTER, T::THREE_QUARTERS);
-        for j in 0..n {
-            let c = x[j];
-            out[2 * j] = if j == 0 { c } else { q * x[j - 1] + t * c };
-            out[2 * j + 1] = t * c + q * x[(j + 1).min(n - 1)];
-        }
-    }
-
-    /// Adjoint of `up_line` (for the backward pass): gathers the weights each input gave.
-    fn up_line_adjoint<T: Sample>(g: &[T], out: &mut [T]) {
-        let n = out.len();
-        let m = g.len();
-        let (q, t) = (T::QUARTER, T::THREE_QUARTERS);
-        for (j, o) in out.iter_mut().enumerate() {
-            let mut v = t * (g[2 * j] + g[2 * j + 1]);
-            // Output 2j - 1 gave x[j] a quarter; for j == 0 output 0 gave it all of its weight.
-            v = v + if j == 0 { q * g[0] } else { q * g[2 * j - 1] };
-            // Output 2j + 2 gave x[j] a quarter; past the end, output 2n - 1 did (clamped).
-            v = v + if j + 1 < n {
-                q * g[2 * j + 2]
-            } else {
-                q * g[m - 1]
-            };
-            *o = v;
-        }
-    }
-
-    fn up_plane<T: Sample>(src: &[T], h: usize, w: usize, dst: &mut [T]) {
-        let w2 = 2 * w;
-        let mut tmp = vec![T::ZERO; h * w2];
-        for (row, out) in src.chunks_exact(w).zip(tmp.chunks_exact_mut(w2)) {
-            up_line(row, out);
-        }
-        let (q, t) = (T::QUARTER, T::THREE_QUARTERS);
-        for i in 0..h {
-            let cur = &tmp[i * w2..(i + 1) * w2];
-            let prev = &tmp[i.saturating_sub(1) * w2..][..w2];
-            let next = &tmp[(i + 1).min(h - 1) * w2..][..w2];
-            let (even, odd) = dst[2 * i * w2..(2 * i + 2) * w2].split_at_mut(w2);
-            if i == 0 {
-                even.copy_from_slice(cur);
-            } else {
-                for ((o, &p), &c) in even.iter_mut().zip(prev).zip(cur) {
-                    *o = q * p + t * c;
-                }
-            }
-            for ((o, &c), &nx) in odd.iter_mut().zip(cur).zip(next) {
-                *o = t * c + q * nx;
-            }
-        }
-    }
-
-    /// `g` [2h, 2w] -> `dst` [h, w], the transpose of `up_plane`.
-    fn up_plane_adjoint<T: Sample>(g: &[T], h: usize, w: usize, dst: &mut [T]) {
-        let w2 = 2 * w;
-        let mut tmp = vec![T::ZERO; 2 * h * w];
-        for (row, out) in g.chunks_exact(w2).zip(tmp.chunks_exact_mut(w)) {
-            up_line_adjoint(row, out);
-        }
-        let mut col_in = vec![T::ZERO; 2 * h];
-        let mut col_out = vec![T::ZERO; h];
-        for j in 0..w {
-            for (r, v) in col_in.iter_mut().enumerate() {
-                *v = tmp[r * w + j];
-            }
-            up_line_adjoint(&col_in, &mut col_out);
-            for (i, &v) in col_out.iter().enumerate() {
-                dst[i * w + j] = v;
-            }
-        }
-    }
-
-    /// `src` [2h, 2w] -> `dst` [h, w]: 2x2 means, grouped as PyTorch's bilinear kernel does.
-    fn down_plane<T: Sample>(src: &[T], w: usize, dst: &mut [T]) {
-        let w2 = 2 * w;
-        for (i, out) in dst.chunks_exact_mut(w).enumerate() {
-            let r0 = &src[2 * i * w2..(2 * i + 1) * w2];
-            let r1 = &src[(2 * i + 1) * w2..(2 * i + 2) * w2];
-            for (j, o) in out.iter_mut().enumerate() {
-                let top = r0[2 * j] + r0[2 * j + 1];
-                let bottom = r1[2 * j] + r1[2 * j + 1];
-                *o = T::QUARTER * (top + bottom);
-            }
-        }
-    }
-
-    #[derive(Clone, Copy)]
-    enum Kind {
-        Up,
-        UpAdjoint,
-        Down,
-    }
-
-    fn run<T: Sample>(src: &[T], planes: usize, h: usize, w: usize, kind: Kind) -> Vec<T> {
-        let (ih, iw, oh, ow) = match kind {
-            Kind::Up => (h, w, 2 * h, 2 * w),
-            Kind::UpAdjoint | Kind::Down => (h, w, h / 2, w / 2),
-        };
-        let mut dst = vec![T::ZERO; planes * oh * ow];
-        if oh * ow == 0 {
-            return dst;
-        }
-        dst.par_chunks_mut(oh * ow)
-            .zip(src.par_chunks(ih * iw))
-            .for_each(|(d, s)| match kind {
-                Kind::Up => up_plane(s, ih, iw, d),
-                Kind::UpAdjoint => up_plane_adjoint(s, oh, ow, d),
-                Kind::Down => down_plane(s, ow, d),
-            });
-        dst
-    }
-
-    fn fwd(kind: Kind, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
-        let (b, c, h, w) = layout.shape().dims4()?;
-        let Some((start, end)) = layout.contiguous_offsets() else {
-            bail!("resample2x needs a contiguous input");
-        };
-        let out_shape = match kind {
-            Kind::Up => (b, c, 2 * h, 2 * w),
-            Kind::UpAdjoint | Kind::Down => {
-                if h % 2 != 0 || w % 2 != 0 {
-                    bail!("resample2x: halving needs even sizes, got {h}x{w}");
-                }
-                (b, c, h / 2, w / 2)
-            }
-        };
-        let planes = b * c;
-        let out = match storage {
-            CpuStorage::F32(v) => CpuStorage::F32(run(&v[start..end], planes, h, w, kind)),
-            CpuStorage::F64(v) => CpuStorage::F64(run(&v[start..end], planes, h, w, kind)),
-            _ => bail!("resample2x supports f32 and f64 only"),
-        };
-        Ok((out, out_shape.into()))
-    }
-
-    /// Bilinear x2 upsampling.
-    pub struct Up;
-    /// Its transpose, the gradient of [`Up`].
-    pub struct UpAdjoint;
-    /// 2x2 mean, the x0.5 bilinear downsampling.
-    pub struct Down;
-
-    impl CustomOp1 for Up {
-        fn name(&self) -> &'static str {
-            "upsample2x"
-        }
-        fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
-            fwd(Kind::Up, s, l)
-        }
-        fn bwd(&self, _arg: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
-            Ok(Some(grad.contiguous()?.apply_op1(UpAdjoint)?))
-        }
-    }
-
-    impl CustomOp1 for UpAdjoint {
-        fn name(&self) -> &'static str {
-            "upsample2x-adjoint"
-        }
-        fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
-            fwd(Kind::UpAdjoint, s, l)
-        }
-        fn bwd(&self, _arg: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
-            Ok(Some(grad.contiguous()?.apply_op1(Up)?))
-        }
-    }
-
-    impl CustomOp1 for Down {
-        fn name(&self) -> &'static str {
-            "downsample2x"
-        }
-        fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
-            fwd(Kind::Down, s, l)
-        }
-        fn bwd(&self, _arg: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
-            let (_, _, h, w) = grad.dims4()?;
-            Ok(Some((grad.upsample_nearest2d(2 * h, 2 * w)? * 0.25)?))
-        }
-    }
+    resize(x, h / 2, w / 2, ResizeMode::HalfPixel)
 }

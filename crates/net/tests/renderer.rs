@@ -30,7 +30,7 @@ const BATCH_TOL: f32 = 1e-6;
 const PATH_TOL_F32: f32 = 2e-5;
 /// The same in f64, and against a literal f64 transcription of the per-sample formula.
 const PATH_TOL_F64: f64 = 1e-12;
-/// Stencil resize vs the interpolation-matrix resize in f64: a few roundings per output.
+/// Sparse-tap resize vs the interpolation-matrix resize in f64: a few roundings per output.
 const RESIZE_TOL: f64 = 1e-13;
 /// Central finite differences in f64 along unit directions. The loss (~3e3) carries ~1e-11 of
 /// rounding noise and is piecewise smooth (leaky-ReLU kinks): a step crossing kinks errs by
