@@ -175,8 +175,9 @@ fn num_cpus() -> usize {
 
 fn bench_model(args: ModelBench) -> Result<()> {
     use gagavatar_net::checkpoint::{init_weights, load_model};
+    use gagavatar_net::model::GagAvatar;
     use gagavatar_net::style_unet::Noise;
-    use gagavatar_net::{gs_generator::concat_attributes, plane, ModelConfig};
+    use gagavatar_net::ModelConfig;
 
     let threads = args.threads.unwrap_or_else(num_cpus);
     // candle's matmul reads the thread count from the environment.
@@ -197,7 +198,7 @@ fn bench_model(args: ModelBench) -> Result<()> {
                 map.insert(k, Tensor::from_vec(v, s, &dev)?);
             }
             let vb = candle_nn::VarBuilder::from_tensors(map, candle_core::DType::F32, &dev);
-            gagavatar_net::model::GagAvatar::new(&cfg, vb)?
+            GagAvatar::new(&cfg, vb)?
         }
     };
     let size = cfg.image_size;
@@ -206,19 +207,8 @@ fn bench_model(args: ModelBench) -> Result<()> {
     let tm: Vec<f32> = tm.iter().flatten().map(|&x| x as f32).collect();
     let tm = Tensor::from_vec(tm, (1, 3, 4), &dev)?;
     let verts = Tensor::randn(0f32, 0.4, (1, cfg.n_vertices, 3), &dev)?;
-    let names = [
-        "preprocess",
-        "dino",
-        "dpt head",
-        "plane+encoding",
-        "gs_generator_g",
-        "gs_generator_l0",
-        "gs_generator_l1",
-        "reconstruct (total)",
-        "splat",
-        "renderer",
-        "drive (total)",
-    ];
+    let mut names: Vec<&str> = GagAvatar::STAGES.to_vec();
+    names.extend(["reconstruct (total)", "splat", "renderer", "drive (total)"]);
     let mut times: Vec<Vec<f64>> = vec![Vec::new(); names.len()];
     let runs = args.runs.max(1);
     let bar = ProgressBar::new((runs + 1) as u64);
@@ -230,42 +220,20 @@ fn bench_model(args: ModelBench) -> Result<()> {
     pool.install(|| -> Result<()> {
         for run in 0..=runs {
             let mut t = Vec::with_capacity(names.len());
-            let mut lap = Instant::now();
-            let mut tick = |t: &mut Vec<f64>| {
+            let start = Instant::now();
+            let mut lap = start;
+            let (avatar, _) = model.reconstruct_staged(&image, &tm, &mut |_| {
                 t.push(lap.elapsed().as_secs_f64());
                 lap = Instant::now();
-            };
-            let start = Instant::now();
-            let input = gagavatar_net::dino::preprocess(&image, &cfg)?;
-            tick(&mut t);
-            let dino = model.dino.forward(&input)?;
-            tick(&mut t);
-            let f_local = model.dpt.forward(&dino, &input)?;
-            tick(&mut t);
-            let f_id = gagavatar_net::dino::f_id(&dino[3])?;
-            let (points, dir) = plane::point_plane(&tm, cfg.plane_size(), 12.0)?;
-            let enc = plane::dir_encoding(&dir)?;
-            tick(&mut t);
-            let g = model.gen_g.forward(&model.head_base, &f_id, &enc)?;
-            tick(&mut t);
-            let l0 = model.gen_l0.forward(&f_local, &enc)?;
-            tick(&mut t);
-            let l1 = model.gen_l1.forward(&f_local, &enc)?;
-            tick(&mut t);
-            let _all = concat_attributes(&[&g, &l0.attrs, &l1.attrs])?;
-            drop(points);
+            })?;
             t.push(start.elapsed().as_secs_f64());
-            // Drive through the public API, timing its two parts.
-            let avatar = model.reconstruct(&image, &tm)?;
             let d0 = Instant::now();
-            let frame = model.drive(&avatar, &verts, &tm, Noise::Fixed)?;
-            let drive_total = d0.elapsed().as_secs_f64();
+            let coarse = model.splat_coarse(&avatar, &verts, &tm)?;
+            t.push(d0.elapsed().as_secs_f64());
             let r0 = Instant::now();
-            let _fine = model.render(&frame.coarse, Noise::Fixed)?;
-            let render = r0.elapsed().as_secs_f64();
-            t.push((drive_total - render).max(0.0));
-            t.push(render);
-            t.push(drive_total);
+            model.render(&coarse, Noise::Fixed)?;
+            t.push(r0.elapsed().as_secs_f64());
+            t.push(d0.elapsed().as_secs_f64());
             if run > 0 {
                 for (k, v) in t.into_iter().enumerate() {
                     times[k].push(v);

@@ -17,6 +17,7 @@ pub use asset::{BasisLayout, FlameAsset, LoadOptions};
 pub use error::{FlameError, Result};
 pub use landmarks::{project_point, project_points, LandmarkEmbedding, Landmarks};
 pub use lbs::{FlameConfig, FlameIdentity, FlameModel, FlameOutput, FlameParams, FLAME_SCALE};
+pub use pth::read_torch_zip;
 pub use record::TrackedFrame;
 pub use rodrigues::rodrigues;
 pub use synth::synthesize;

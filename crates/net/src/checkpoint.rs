@@ -27,11 +27,11 @@ pub const CONFIG_METADATA_KEY: &str = "gagavatar.config";
 const RELEASE_STATE_DICT: &str = "model.";
 
 /// A `VarBuilder` backend that records every requested (key, shape) and hands out broadcast
-/// zeros, so building a model costs no weight memory.
-#[derive(Default)]
-struct Recorder {
-    seen: Mutex<Vec<(String, Vec<usize>)>>,
-}
+/// zeros, so building a model costs no weight memory. Clones share one record.
+#[derive(Default, Clone)]
+struct Recorder(std::sync::Arc<Mutex<KeyShapes>>);
+
+type KeyShapes = Vec<(String, Vec<usize>)>;
 
 impl SimpleBackend for Recorder {
     fn get(
@@ -42,7 +42,7 @@ impl SimpleBackend for Recorder {
         dtype: DType,
         dev: &Device,
     ) -> candle_core::Result<Tensor> {
-        if let Ok(mut seen) = self.seen.lock() {
+        if let Ok(mut seen) = self.0.lock() {
             seen.push((name.to_string(), s.dims().to_vec()));
         }
         Tensor::zeros((), dtype, dev)?.broadcast_as(s)
@@ -60,30 +60,11 @@ impl SimpleBackend for Recorder {
 /// Every key the model with `cfg` asks for, with its shape, sorted by key.
 pub fn expected_keys(cfg: &ModelConfig) -> Result<BTreeMap<String, Vec<usize>>> {
     cfg.validate().map_err(NetError::Config)?;
-    let rec = std::sync::Arc::new(Recorder::default());
-    struct Shared(std::sync::Arc<Recorder>);
-    impl SimpleBackend for Shared {
-        fn get(
-            &self,
-            s: Shape,
-            name: &str,
-            h: candle_nn::Init,
-            dtype: DType,
-            dev: &Device,
-        ) -> candle_core::Result<Tensor> {
-            self.0.get(s, name, h, dtype, dev)
-        }
-        fn get_unchecked(&self, n: &str, d: DType, dev: &Device) -> candle_core::Result<Tensor> {
-            self.0.get_unchecked(n, d, dev)
-        }
-        fn contains_tensor(&self, n: &str) -> bool {
-            self.0.contains_tensor(n)
-        }
-    }
-    let vb = VarBuilder::from_backend(Box::new(Shared(rec.clone())), DType::F32, Device::Cpu);
+    let rec = Recorder::default();
+    let vb = VarBuilder::from_backend(Box::new(rec.clone()), DType::F32, Device::Cpu);
     crate::model::GagAvatar::new(cfg, vb)?;
     let seen = rec
-        .seen
+        .0
         .lock()
         .map_err(|_| NetError::Config("key recorder poisoned".into()))?;
     let mut out = BTreeMap::new();
@@ -135,7 +116,7 @@ pub fn read_weights(path: &Path) -> Result<Weights> {
 }
 
 fn read_torch(path: &Path) -> Result<Weights> {
-    let map = gagavatar_flame::asset::read_tensor_file(path)?;
+    let map = gagavatar_flame::read_torch_zip(path)?;
     let nested = map.keys().any(|k| k.starts_with(RELEASE_STATE_DICT));
     let mut tensors = HashMap::new();
     for (key, raw) in map {
@@ -321,8 +302,7 @@ pub type WeightData = BTreeMap<String, (Vec<usize>, Vec<f32>)>;
 /// Seeded random weights for every key of `cfg`, with realistic magnitudes.
 pub fn init_weights(cfg: &ModelConfig, seed: u64) -> Result<WeightData> {
     let keys = expected_keys(cfg)?;
-    #[allow(clippy::type_complexity)]
-    let out: Vec<(String, (Vec<usize>, Vec<f32>))> = keys
+    Ok(keys
         .into_par_iter()
         .map(|(k, shape)| {
             let (mean, std) = init_rule(&k, &shape);
@@ -331,8 +311,7 @@ pub fn init_weights(cfg: &ModelConfig, seed: u64) -> Result<WeightData> {
             let v = (0..n).map(|_| (mean + std * rng.normal()) as f32).collect();
             (k, (shape, v))
         })
-        .collect();
-    Ok(out.into_iter().collect())
+        .collect())
 }
 
 /// A float32 tensor view for the safetensors writer.

@@ -152,6 +152,28 @@ impl GagAvatar {
         image: &Tensor,
         transform: &Tensor,
     ) -> Result<(Avatar, ReconstructTrace)> {
+        self.reconstruct_staged(image, transform, &mut |_| {})
+    }
+
+    /// Names of the stages `reconstruct_staged` reports, in order.
+    pub const STAGES: [&'static str; 7] = [
+        "preprocess",
+        "dino",
+        "dpt head",
+        "plane+encoding",
+        "gs_generator_g",
+        "gs_generator_l0",
+        "gs_generator_l1",
+    ];
+
+    /// `reconstruct_traced`, calling `done(name)` as each of [`Self::STAGES`] finishes (for
+    /// per-module timing).
+    pub fn reconstruct_staged(
+        &self,
+        image: &Tensor,
+        transform: &Tensor,
+        done: &mut dyn FnMut(&'static str),
+    ) -> Result<(Avatar, ReconstructTrace)> {
         let size = self.cfg.image_size;
         let b = match image.dims() {
             [b, 3, h, w] if *b > 0 && *h == size && *w == size => *b,
@@ -168,18 +190,26 @@ impl GagAvatar {
         let image = image.to_dtype(dtype)?;
         let transform = transform.to_dtype(dtype)?;
 
+        let [s_pre, s_dino, s_dpt, s_plane, s_g, s_l0, s_l1] = Self::STAGES;
         let input_518 = crate::dino::preprocess(&image, &self.cfg)?;
+        done(s_pre);
         let dino = self.dino.forward(&input_518)?;
         let f_id = crate::dino::f_id(&dino[3])?;
+        done(s_dino);
         let f_local = self.dpt.forward(&dino, &input_518)?;
+        done(s_dpt);
 
         let s = self.cfg.plane_size();
         let (plane_points, plane_dir) = point_plane(&transform, s, FOCAL)?;
         let enc = dir_encoding(&plane_dir)?;
+        done(s_plane);
 
         let expr = self.gen_g.forward(&self.head_base, &f_id, &enc)?;
+        done(s_g);
         let l0 = self.gen_l0.forward(&f_local, &enc)?;
+        done(s_l0);
         let l1 = self.gen_l1.forward(&f_local, &enc)?;
+        done(s_l1);
         let dir = plane_dir.unsqueeze(1)?;
         let xyz0 = (&plane_points + l0.distance.broadcast_mul(&dir)?)?;
         let xyz1 = (&plane_points - l1.distance.broadcast_mul(&dir)?)?;
@@ -217,6 +247,18 @@ impl GagAvatar {
         transform: &Tensor,
         noise: Noise,
     ) -> Result<DrivenFrame> {
+        let coarse = self.splat_coarse(avatar, vertices, transform)?;
+        let fine = self.render(&coarse, noise)?;
+        Ok(DrivenFrame { coarse, fine })
+    }
+
+    /// The first half of `drive`: the splatted `[B, C, H, W]` feature image.
+    pub fn splat_coarse(
+        &self,
+        avatar: &Avatar,
+        vertices: &Tensor,
+        transform: &Tensor,
+    ) -> Result<Tensor> {
         let v = self.cfg.n_vertices;
         let b = match vertices.dims() {
             [b, n, 3] if *b > 0 && *n == v => *b,
@@ -265,11 +307,7 @@ impl GagAvatar {
             &background,
             &cams,
         )?;
-        let fine = self.renderer.forward(&out.image, noise)?;
-        Ok(DrivenFrame {
-            coarse: out.image,
-            fine,
-        })
+        Ok(out.image)
     }
 
     /// The neural renderer alone (coarse `[B, C, H, W]` -> fine RGB).
