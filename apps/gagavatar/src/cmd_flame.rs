@@ -4,13 +4,8 @@ use gagavatar_splat::scene::write_atomic;
 use std::fmt::Write as _;
 use std::path::PathBuf;
 
-use anyhow::Context;
-use candle_core::{DType, Device};
 use clap::Subcommand;
-use gagavatar_flame::{
-    synthesize, BasisLayout, FlameAsset, FlameConfig, FlameModel, LoadOptions, TrackedFrame,
-    FLAME_SCALE,
-};
+use gagavatar_flame::{synthesize, TrackedFrame};
 
 #[derive(Debug, Subcommand)]
 pub enum FlameCmd {
@@ -72,31 +67,17 @@ pub fn run(cmd: FlameCmd) -> anyhow::Result<()> {
             n_shape,
             n_exp,
         } => {
-            let options = LoadOptions {
-                layout: Some(BasisLayout {
-                    shape: n_shape,
-                    expression: n_exp,
-                }),
-            };
-            let asset = FlameAsset::load(&flame, &options).with_context(|| {
-                format!("loading {} as {n_shape} shape + {n_exp} expression components (--n-shape, --n-exp)", flame.display())
-            })?;
+            let model = crate::cmd_model::load_flame(&flame, n_shape, n_exp)?;
             let record = TrackedFrame::from_json_file(&params)?;
-            let config = FlameConfig {
-                n_shape: asset.layout.shape,
-                n_exp: asset.layout.expression,
-                scale: FLAME_SCALE,
-            };
-            let model = FlameModel::new(&asset, config, &Device::Cpu, DType::F32)?;
             let out = model.forward(&record.params(&model)?)?;
             let verts = out.vertices.squeeze(0)?.to_vec2::<f32>()?;
-            let obj = obj_text(&verts, &asset.faces);
+            let obj = obj_text(&verts, &model.faces);
             write_atomic(&output, obj.as_bytes())?;
             eprintln!(
                 "wrote {} ({} vertices, {} faces)",
                 output.display(),
                 verts.len(),
-                asset.n_faces()
+                model.faces.len()
             );
             Ok(())
         }
