@@ -352,15 +352,7 @@ pub fn write_safetensors<'a>(
         let json = serde_json::to_string(cfg).map_err(|e| NetError::Config(e.to_string()))?;
         meta.insert(CONFIG_METADATA_KEY.to_string(), json);
     }
-    let dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let name = path
-        .file_name()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "out".into());
-    let tmp = dir.join(format!(".{name}.tmp{}", std::process::id()));
+    let tmp = gagavatar_splat::scene::temp_sibling(path);
     let refs: Vec<(&str, &F32View)> = views.iter().map(|(k, v)| (k.as_str(), v)).collect();
     let result = safetensors::tensor::serialize_to_file(refs, Some(meta), &tmp)
         .map_err(|e| format_err(path, e))

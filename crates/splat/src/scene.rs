@@ -267,13 +267,8 @@ impl GaussianScene {
     }
 }
 
-/// Writes `bytes` to a temp file beside `path`, then renames it over `path`, so a crash never
-/// leaves a half-written file.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let io = |source| SplatError::Io {
-        path: path.display().to_string(),
-        source,
-    };
+/// A hidden temporary name beside `path` (same directory, so a rename replaces `path` atomically).
+pub fn temp_sibling(path: &Path) -> std::path::PathBuf {
     let dir = path
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
@@ -282,7 +277,17 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
         .file_name()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| "out".into());
-    let tmp = dir.join(format!(".{name}.tmp{}", std::process::id()));
+    dir.join(format!(".{name}.tmp{}", std::process::id()))
+}
+
+/// Writes `bytes` to a temp file beside `path`, then renames it over `path`, so a crash never
+/// leaves a half-written file.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let io = |source| SplatError::Io {
+        path: path.display().to_string(),
+        source,
+    };
+    let tmp = temp_sibling(path);
     let result = (|| {
         let mut f = std::fs::File::create(&tmp)?;
         f.write_all(bytes)?;
