@@ -6,7 +6,7 @@ pub mod asset;
 pub mod error;
 pub mod landmarks;
 pub mod lbs;
-mod pickle;
+pub mod pickle;
 mod pth;
 pub mod record;
 pub mod rodrigues;

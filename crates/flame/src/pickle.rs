@@ -20,11 +20,11 @@ use std::collections::HashMap;
 use std::fmt;
 
 /// Index of a value in [`Pickle`]'s arena.
-pub(crate) type Id = usize;
+pub type Id = usize;
 
 /// One unpickled value.
 #[derive(Debug, Clone, PartialEq)]
-pub(crate) enum Value {
+pub enum Value {
     None,
     Bool(bool),
     Int(i64),
@@ -52,13 +52,13 @@ pub(crate) enum Value {
 }
 
 #[derive(Debug, Clone, PartialEq)]
-pub(crate) struct Global {
+pub struct Global {
     pub module: String,
     pub name: String,
 }
 
 #[derive(Debug, Clone, PartialEq)]
-pub(crate) struct Object {
+pub struct Object {
     /// What was called: usually a [`Value::Global`]; for REDUCE possibly another object (a
     /// `functools.partial`, say).
     pub callable: Id,
@@ -77,7 +77,7 @@ pub(crate) struct Object {
 
 /// A parsed pickle: the arena and the value STOP returned.
 #[derive(Debug, Clone)]
-pub(crate) struct Pickle {
+pub struct Pickle {
     nodes: Vec<Value>,
     root: Id,
 }
@@ -178,7 +178,7 @@ impl Pickle {
 
 /// Where and why a stream was refused.
 #[derive(Debug, Clone, PartialEq)]
-pub(crate) struct PickleError {
+pub struct PickleError {
     /// Byte offset of the opcode being run.
     pub offset: usize,
     pub message: String,
@@ -195,7 +195,7 @@ impl std::error::Error for PickleError {}
 /// Caps against hostile streams. The defaults are orders of magnitude above what a release
 /// checkpoint needs (about ten values per tensor, mark nesting below 10).
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct Limits {
+pub struct Limits {
     /// Values created (the arena size).
     pub max_values: usize,
     /// Memo entries.
@@ -228,11 +228,13 @@ impl Default for Limits {
 }
 
 /// Parses a pickle with the default limits.
-pub(crate) fn parse(data: &[u8]) -> Result<Pickle, PickleError> {
+pub fn parse(data: &[u8]) -> Result<Pickle, PickleError> {
     parse_with_limits(data, Limits::default())
 }
 
-pub(crate) fn parse_with_limits(data: &[u8], limits: Limits) -> Result<Pickle, PickleError> {
+/// Parses with caller-chosen caps: data pickles far larger than a checkpoint's (a tracked
+/// dataset's `optim.pkl`) need caps that grow with the input.
+pub fn parse_with_limits(data: &[u8], limits: Limits) -> Result<Pickle, PickleError> {
     let mut m = Machine {
         data,
         pos: 0,

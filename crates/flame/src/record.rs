@@ -58,6 +58,12 @@ impl TrackedFrame {
         // JSON has no NaN/Infinity literals; serde_json rejects them (and out-of-range numbers)
         // here, so such records fail with the parser's position.
         let v: Value = serde_json::from_str(text).map_err(|e| rec_err("<json>", e.to_string()))?;
+        Self::from_json_value(&v)
+    }
+
+    /// A record that is part of a larger JSON document (a driving sequence's `frames` entry).
+    /// Keys other than the record's fields are ignored.
+    pub fn from_json_value(v: &Value) -> Result<Self> {
         let obj = v
             .as_object()
             .ok_or_else(|| rec_err("<json>", "top level is not an object"))?;
