@@ -90,7 +90,8 @@ impl Camera {
 
     /// A camera at `distance` on the +Z axis of the world looking at the origin, rotated by `yaw`
     /// (about world Y) and `pitch` (about world X), in the release's matrix layout. Handy for
-    /// tests, benchmarks and orbit views.
+    /// tests, benchmarks and orbit views. Yaw 0 (R = I) sits on -Z and sees the back of a FLAME
+    /// head; the release's frontal camera, R = diag(-1, 1, -1), is yaw = pi.
     pub fn look_at_origin_matrix(distance: f64, yaw: f64, pitch: f64) -> [[f64; 4]; 3] {
         // PyTorch3D camera looking down its +Z. A camera placed at (0,0,-d) looking at the origin
         // with R = I has T = (0,0,d). Rotating the world by Ry(yaw) Rx(pitch) before the camera

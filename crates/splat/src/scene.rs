@@ -267,6 +267,174 @@ impl GaussianScene {
     }
 }
 
+impl GaussianScene {
+    /// The same Gaussians with unit quaternions and matching scales: each covariance
+    /// `M M^T` (`M = R(q) diag(s)`, the release's unnormalised-quaternion matrix of spec §7) is
+    /// eigendecomposed into a proper rotation and its axis lengths. Viewers that normalise
+    /// quaternions (every 3DGS viewer) then draw exactly the covariances this crate splats.
+    pub fn with_unit_quaternions(&self) -> Self {
+        let mut out = self.clone();
+        for i in 0..self.len() {
+            let q: [f64; 4] = std::array::from_fn(|k| self.rotations[4 * i + k] as f64);
+            let s: [f64; 3] = std::array::from_fn(|k| self.scales[3 * i + k] as f64);
+            let (q, s) = unit_quaternion_form(q, s);
+            for k in 0..4 {
+                out.rotations[4 * i + k] = q[k] as f32;
+            }
+            for k in 0..3 {
+                out.scales[3 * i + k] = s[k] as f32;
+            }
+        }
+        out
+    }
+}
+
+/// Covariance `M M^T` with `M = R(q) diag(s)` and the unnormalised quaternion matrix.
+pub fn covariance(q: [f64; 4], s: [f64; 3]) -> [[f64; 3]; 3] {
+    let r = crate::project::quat_to_mat(q);
+    let m: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|k| r[i][k] * s[k]));
+    std::array::from_fn(|i| std::array::from_fn(|k| (0..3).map(|j| m[i][j] * m[k][j]).sum()))
+}
+
+/// `(unit quaternion, scales)` with the same covariance as the unnormalised `(q, s)`.
+pub fn unit_quaternion_form(q: [f64; 4], s: [f64; 3]) -> ([f64; 4], [f64; 3]) {
+    let (vals, mut vecs) = symmetric_eigen(covariance(q, s));
+    // Columns of `vecs` are the axes; a reflection is not a rotation, so flip one axis.
+    let det = vecs[0][0] * (vecs[1][1] * vecs[2][2] - vecs[1][2] * vecs[2][1])
+        - vecs[0][1] * (vecs[1][0] * vecs[2][2] - vecs[1][2] * vecs[2][0])
+        + vecs[0][2] * (vecs[1][0] * vecs[2][1] - vecs[1][1] * vecs[2][0]);
+    if det < 0.0 {
+        for row in vecs.iter_mut() {
+            row[2] = -row[2];
+        }
+    }
+    let scales = vals.map(|l| l.max(0.0).sqrt());
+    (matrix_to_quaternion(&vecs), scales)
+}
+
+/// Cyclic Jacobi on a symmetric 3x3: eigenvalues and eigenvectors (as columns).
+fn symmetric_eigen(mut a: [[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
+    let mut v = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    for _sweep in 0..32 {
+        let off = a[0][1].abs() + a[0][2].abs() + a[1][2].abs();
+        let scale = a[0][0].abs() + a[1][1].abs() + a[2][2].abs();
+        if off <= 1e-18 * scale || off == 0.0 {
+            break;
+        }
+        for (p, q) in [(0, 1), (0, 2), (1, 2)] {
+            if a[p][q] == 0.0 {
+                continue;
+            }
+            let theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
+            let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+            let t = if theta == 0.0 { 1.0 } else { t };
+            let c = 1.0 / (t * t + 1.0).sqrt();
+            let sn = t * c;
+            // A <- J^T A J with the rotation J in the (p, q) plane.
+            for k in 0..3 {
+                let (akp, akq) = (a[k][p], a[k][q]);
+                a[k][p] = c * akp - sn * akq;
+                a[k][q] = sn * akp + c * akq;
+            }
+            for k in 0..3 {
+                let (apk, aqk) = (a[p][k], a[q][k]);
+                a[p][k] = c * apk - sn * aqk;
+                a[q][k] = sn * apk + c * aqk;
+            }
+            for row in v.iter_mut() {
+                let (vp, vq) = (row[p], row[q]);
+                row[p] = c * vp - sn * vq;
+                row[q] = sn * vp + c * vq;
+            }
+        }
+    }
+    ([a[0][0], a[1][1], a[2][2]], v)
+}
+
+/// Unit quaternion (r, x, y, z) of a rotation matrix, in the convention of `quat_to_mat`.
+fn matrix_to_quaternion(m: &[[f64; 3]; 3]) -> [f64; 4] {
+    let tr = m[0][0] + m[1][1] + m[2][2];
+    // Divide by the largest of the four candidates for stability.
+    let q = if tr > 0.0 {
+        let s = 2.0 * (tr + 1.0).sqrt();
+        [
+            s / 4.0,
+            (m[2][1] - m[1][2]) / s,
+            (m[0][2] - m[2][0]) / s,
+            (m[1][0] - m[0][1]) / s,
+        ]
+    } else if m[0][0] > m[1][1] && m[0][0] > m[2][2] {
+        let s = 2.0 * (1.0 + m[0][0] - m[1][1] - m[2][2]).sqrt();
+        [
+            (m[2][1] - m[1][2]) / s,
+            s / 4.0,
+            (m[0][1] + m[1][0]) / s,
+            (m[0][2] + m[2][0]) / s,
+        ]
+    } else if m[1][1] > m[2][2] {
+        let s = 2.0 * (1.0 + m[1][1] - m[0][0] - m[2][2]).sqrt();
+        [
+            (m[0][2] - m[2][0]) / s,
+            (m[0][1] + m[1][0]) / s,
+            s / 4.0,
+            (m[1][2] + m[2][1]) / s,
+        ]
+    } else {
+        let s = 2.0 * (1.0 + m[2][2] - m[0][0] - m[1][1]).sqrt();
+        [
+            (m[1][0] - m[0][1]) / s,
+            (m[0][2] + m[2][0]) / s,
+            (m[1][2] + m[2][1]) / s,
+            s / 4.0,
+        ]
+    };
+    let n = q.iter().map(|x| x * x).sum::<f64>().sqrt();
+    q.map(|x| x / n)
+}
+
+#[cfg(test)]
+mod unit_quaternion_tests {
+    use super::*;
+    use crate::testscene::Rng;
+
+    /// Relative to the covariance's largest entry: f64 Jacobi converges to ~1e-15.
+    const COV_REL_TOL: f64 = 1e-10;
+
+    #[test]
+    fn unit_form_keeps_every_covariance() {
+        let mut rng = Rng::new(5);
+        for case in 0..2000 {
+            let mut q: [f64; 4] = std::array::from_fn(|_| rng.normal());
+            // Unnormalised on purpose, tiny and large norms too.
+            let norm = [1e-3, 0.3, 1.0, 2.5][case % 4];
+            q.iter_mut().for_each(|x| *x *= norm);
+            let mut s: [f64; 3] = std::array::from_fn(|_| (rng.normal() * 1.5).exp() * 0.01);
+            if case % 7 == 0 {
+                s[case % 3] = 0.0;
+            }
+            if case % 11 == 0 {
+                s = [0.02, 0.02, 0.02];
+            }
+            let (u, s2) = unit_quaternion_form(q, s);
+            let n: f64 = u.iter().map(|x| x * x).sum::<f64>().sqrt();
+            assert!((n - 1.0).abs() < 1e-12, "case {case}: |q| = {n}");
+            let want = covariance(q, s);
+            let got = covariance(u, s2);
+            let big = want.iter().flatten().fold(1e-300f64, |m, x| m.max(x.abs()));
+            for i in 0..3 {
+                for k in 0..3 {
+                    assert!(
+                        (want[i][k] - got[i][k]).abs() <= COV_REL_TOL * big,
+                        "case {case} [{i}][{k}] expected {} got {}",
+                        want[i][k],
+                        got[i][k]
+                    );
+                }
+            }
+        }
+    }
+}
+
 /// A hidden temporary name beside `path` (same directory, so a rename replaces `path` atomically).
 pub fn temp_sibling(path: &Path) -> std::path::PathBuf {
     let dir = path
