@@ -47,6 +47,25 @@ pub struct ModelConfig {
     /// 16384 and 512 give 512 up to 32x32, then 256, 128, 64, 32 at 512x512.
     pub decoder_channel_base: usize,
     pub decoder_max_channels: usize,
+    /// Whether training keeps the DINOv2 backbone (`base_model.dino_model.*`) fixed: `None`
+    /// follows [`ModelConfig::backbone_frozen`]'s rule (frozen exactly when the ViT is shaped
+    /// like the pretrained DINOv2 ViT-B/14, i.e. in the release); `Some` overrides it. Not
+    /// written when `None`, so configurations stored before it existed still compare equal.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub freeze_backbone: Option<bool>,
+    /// Ablation "one-plane lifting" (paper, VFHQ PSNR 21.34): only `gs_generator_l0`'s lifted
+    /// point set is used; `gs_generator_l1` keeps its keys but does not run, so an avatar has
+    /// `V + S^2` Gaussians and `lifted_xyz` is `[B, S^2, 3]`.
+    #[serde(default)]
+    pub one_plane: bool,
+    /// Ablation "without F_id" (paper, 21.13): the expression branch gets zeros where F_id
+    /// would be (its input width, hence the key set, is unchanged). F_local is unaffected.
+    #[serde(default)]
+    pub no_fid_in_expression: bool,
+    /// Ablation "without neural renderer" (paper, 20.34): `fine` is the coarse image's RGB
+    /// channels (0..3) and the StyleUNet (`upsampler.*`, still loaded) is skipped.
+    #[serde(default)]
+    pub no_neural_renderer: bool,
 }
 
 /// Harmonic frequencies of the direction encoding (1, 2, 4, 8): 3 * (2 * 4) + 3 = 27 values.
@@ -78,6 +97,10 @@ impl ModelConfig {
             style_mlp_layers: 8,
             decoder_channel_base: 16384,
             decoder_max_channels: 512,
+            freeze_backbone: None,
+            one_plane: false,
+            no_fid_in_expression: false,
+            no_neural_renderer: false,
         }
     }
 
@@ -104,6 +127,10 @@ impl ModelConfig {
             style_mlp_layers: 2,
             decoder_channel_base: 1024,
             decoder_max_channels: 32,
+            freeze_backbone: None,
+            one_plane: false,
+            no_fid_in_expression: false,
+            no_neural_renderer: false,
         }
     }
 
@@ -130,6 +157,34 @@ impl ModelConfig {
             style_mlp_layers: 4,
             decoder_channel_base: 4096,
             decoder_max_channels: 128,
+            freeze_backbone: None,
+            one_plane: false,
+            no_fid_in_expression: false,
+            no_neural_renderer: false,
+        }
+    }
+
+    /// Whether training keeps the DINOv2 backbone fixed: `freeze_backbone` when set, else
+    /// frozen exactly when the ViT has DINOv2 ViT-B/14's shape (patch 14, width 768, 12 blocks,
+    /// 12 heads, MLP 3072), the only shape whose pretrained weights exist (the release trains
+    /// with it frozen, spec 11). The small presets train their ViT from scratch.
+    pub fn backbone_frozen(&self) -> bool {
+        self.freeze_backbone.unwrap_or(
+            self.patch == 14
+                && self.vit_dim == 768
+                && self.vit_depth == 12
+                && self.vit_heads == 12
+                && self.vit_mlp == 3072,
+        )
+    }
+
+    /// Lifted points per avatar: 2 S^2 (S^2 with `one_plane`).
+    pub fn lifted_points(&self) -> usize {
+        let s2 = self.plane_size() * self.plane_size();
+        if self.one_plane {
+            s2
+        } else {
+            2 * s2
         }
     }
 
@@ -166,9 +221,9 @@ impl ModelConfig {
         }
     }
 
-    /// Gaussians per avatar: 5023 + 2 S^2 = 180,255.
+    /// Gaussians per avatar: 5023 + 2 S^2 = 180,255 (5023 + S^2 with `one_plane`).
     pub fn n_gaussians(&self) -> usize {
-        self.n_vertices + 2 * self.plane_size() * self.plane_size()
+        self.n_vertices + self.lifted_points()
     }
 
     /// ResBlocks down (and up) in the StyleUNet: log2(image) - 2 = 7 (512 -> 4).

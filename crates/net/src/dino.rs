@@ -1,14 +1,20 @@
 //! The frozen DINOv2 ViT-B/14 of the encoder (`base_model.dino_model.*`, spec section 4) and the
 //! source preprocessing that feeds it (spec section 3).
 //!
-//! The ViT is frozen in the release, so its forward is inference-only: fused CPU kernels without
-//! a backward (layer norm, GELU, in-place softmax; see `rows`) and linear weights copied into a
-//! transposed layout at load time. No gradient flows through it or into its weights, which is
-//! what "frozen" asks; build it from fixed tensors (a `VarMap` would not see updates).
+//! The ViT is frozen in the release, so its default forward is inference-only: fused CPU kernels
+//! without a backward (layer norm, GELU, in-place softmax; see `rows`) and linear weights copied
+//! into a transposed layout at load time. No gradient flows through it or into its weights, which
+//! is what "frozen" asks.
+//!
+//! The small presets have no pretrained backbone, so there the ViT trains. Built from variables
+//! (a `VarMap`), it keeps the live weights (views only, so an optimiser's in-place `Var::set`
+//! is seen by the next forward) and runs differentiable candle ops wherever a value tracks
+//! gradients. The rule is per op: the fused kernels run only when nothing they touch tracks
+//! gradients, so a frozen backbone (fixed tensors, untracked input) keeps the fast path.
 
 use candle_core::{
     backend::BackendStorage, bail, CpuStorage, CustomOp1, CustomOp3, InplaceOp1, Layout, Result,
-    Shape, Tensor,
+    Shape, Tensor, D,
 };
 use candle_nn::VarBuilder;
 use gagavatar_ops::{resize, ResizeMode};
@@ -48,22 +54,59 @@ pub fn preprocess(image: &Tensor, cfg: &ModelConfig) -> Result<Tensor> {
 /// `nn.Linear` on token rows: `x [M, in] -> [M, out]`.
 #[derive(Debug, Clone)]
 struct Linear {
-    /// `weight^T` [in, out], stored transposed once: the GEMM runs ~15% faster on a row-major
-    /// right operand than on the transposed view. A copy, which is fine for frozen weights.
-    weight_t: Tensor,
+    weight: LinearWeight,
     bias: Tensor,
+}
+
+#[derive(Debug, Clone)]
+enum LinearWeight {
+    /// `weight^T` [in, out], stored transposed once: the GEMM runs ~15% faster on a row-major
+    /// right operand than on the transposed view. A copy, so only for fixed weights.
+    Transposed(Tensor),
+    /// A trainable `weight` [out, in] as given (a variable): used through a transposed view so
+    /// that updates to the variable reach the forward and gradients reach the variable.
+    Live(Tensor),
 }
 
 impl Linear {
     fn new(vb: VarBuilder, cin: usize, cout: usize) -> Result<Self> {
-        Ok(Self {
-            weight_t: vb.get((cout, cin), "weight")?.t()?.contiguous()?,
-            bias: vb.get(cout, "bias")?,
-        })
+        Self::from_parts(vb.get((cout, cin), "weight")?, vb.get(cout, "bias")?)
+    }
+
+    /// `w` [out, in]: kept as is when it is a variable (or a view of one), else transposed.
+    fn from_parts(w: Tensor, bias: Tensor) -> Result<Self> {
+        let weight = if w.track_op() {
+            LinearWeight::Live(w)
+        } else {
+            LinearWeight::Transposed(w.t()?.contiguous()?)
+        };
+        Ok(Self { weight, bias })
+    }
+
+    fn is_live(&self) -> bool {
+        matches!(self.weight, LinearWeight::Live(_))
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        x.matmul(&self.weight_t)?.broadcast_add(&self.bias)
+        let y = match &self.weight {
+            LinearWeight::Transposed(wt) => x.matmul(wt)?,
+            LinearWeight::Live(w) => x.matmul(&w.t()?)?,
+        };
+        y.broadcast_add(&self.bias)
+    }
+
+    /// The checkpoint's `weight` [out, in] (a view, exact for both layouts).
+    fn weight(&self) -> Result<Tensor> {
+        match &self.weight {
+            LinearWeight::Transposed(wt) => wt.t(),
+            LinearWeight::Live(w) => Ok(w.clone()),
+        }
+    }
+
+    fn named(&self, prefix: &str, out: &mut Vec<(String, Tensor)>) -> Result<()> {
+        out.push((format!("{prefix}.weight"), self.weight()?));
+        out.push((format!("{prefix}.bias"), self.bias.clone()));
+        Ok(())
     }
 }
 
@@ -82,8 +125,24 @@ impl LayerNorm {
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        if x.track_op() || self.weight.track_op() || self.bias.track_op() {
+            // Same two-pass arithmetic as the fused op, from ops that have a backward (candle-nn's
+            // fused layer norm has none).
+            let mean = x.mean_keepdim(D::Minus1)?;
+            let centred = x.broadcast_sub(&mean)?;
+            let var = centred.sqr()?.mean_keepdim(D::Minus1)?;
+            let normed = centred.broadcast_div(&(var + LN_EPS)?.sqrt()?)?;
+            return normed
+                .broadcast_mul(&self.weight)?
+                .broadcast_add(&self.bias);
+        }
         x.contiguous()?
             .apply_op3_no_bwd(&self.weight, &self.bias, &LayerNormOp { eps: LN_EPS })
+    }
+
+    fn named(&self, prefix: &str, out: &mut Vec<(String, Tensor)>) {
+        out.push((format!("{prefix}.weight"), self.weight.clone()));
+        out.push((format!("{prefix}.bias"), self.bias.clone()));
     }
 }
 
@@ -215,8 +274,13 @@ fn attend(q: &Tensor, k: &Tensor, v: &Tensor, per_chunk: usize) -> Result<Tensor
         let logits = q
             .narrow(0, start, len)?
             .matmul(&k.narrow(0, start, len)?.t()?)?;
-        softmax_in_place(&logits)?;
-        chunks.push(logits.matmul(&v.narrow(0, start, len)?)?);
+        let weights = if logits.track_op() || v.track_op() {
+            softmax_tracked(&logits)?
+        } else {
+            softmax_in_place(&logits)?;
+            logits
+        };
+        chunks.push(weights.matmul(&v.narrow(0, start, len)?)?);
     }
     Tensor::cat(&chunks, 0)
 }
@@ -250,6 +314,18 @@ impl Block {
         })
     }
 
+    fn named(&self, prefix: &str, out: &mut Vec<(String, Tensor)>) -> Result<()> {
+        self.norm1.named(&format!("{prefix}.norm1"), out);
+        self.attn.qkv.named(&format!("{prefix}.attn.qkv"), out)?;
+        self.attn.proj.named(&format!("{prefix}.attn.proj"), out)?;
+        out.push((format!("{prefix}.ls1.gamma"), self.ls1.clone()));
+        self.norm2.named(&format!("{prefix}.norm2"), out);
+        self.fc1.named(&format!("{prefix}.mlp.fc1"), out)?;
+        self.fc2.named(&format!("{prefix}.mlp.fc2"), out)?;
+        out.push((format!("{prefix}.ls2.gamma"), self.ls2.clone()));
+        Ok(())
+    }
+
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let (b, n, c) = x.dims3()?;
         let a = self.attn.forward(&self.norm1.forward(x)?)?;
@@ -262,7 +338,22 @@ impl Block {
 
 /// Exact (erf, not tanh) GELU, `x (1 + erf(x / sqrt 2)) / 2`.
 fn gelu_erf(x: &Tensor) -> Result<Tensor> {
+    if x.track_op() {
+        // Spelled out rather than `Tensor::gelu_erf`, whose backward rounds 1/sqrt(2 pi) to six
+        // digits; `erf`'s backward is exact.
+        let e = (x * std::f64::consts::FRAC_1_SQRT_2)?.erf()?;
+        return ((e + 1.0)? * x)? * 0.5;
+    }
     x.contiguous()?.apply_op1_no_bwd(&GeluErfOp)
+}
+
+/// Softmax over the last dim from ops with a backward. The row maximum is detached: subtracting
+/// any per-row constant leaves the softmax and its gradient unchanged, and a detached one keeps
+/// the max's own (zero-sum) gradient out of the graph.
+fn softmax_tracked(x: &Tensor) -> Result<Tensor> {
+    let max = x.max_keepdim(D::Minus1)?.detach();
+    let e = x.broadcast_sub(&max)?.exp()?;
+    e.broadcast_div(&e.sum_keepdim(D::Minus1)?)
 }
 
 struct GeluErfOp;
@@ -632,11 +723,10 @@ pub struct Dinov2 {
     cls_token: Tensor,
     pos_embed: Tensor,
     /// Checkpoint key only: masked-image modelling is a pretraining feature.
-    #[allow(dead_code)]
     mask_token: Tensor,
-    /// `[3 p p, C]`.
-    patch_weight_t: Tensor,
-    patch_bias: Tensor,
+    /// Kernel == stride: the patch embedding is one GEMM over flattened patches, a linear layer
+    /// `[C, 3 p p]`.
+    patch_embed: Linear,
     blocks: Vec<Block>,
     norm: LayerNorm,
     patch: usize,
@@ -666,14 +756,15 @@ impl Dinov2 {
         let blocks = (0..cfg.vit_depth)
             .map(|i| Block::new(cfg, vb.pp(format!("blocks.{i}"))))
             .collect::<Result<Vec<_>>>()?;
-        let patch_weight = vb.get((c, 3, p, p), "patch_embed.proj.weight")?;
+        let patch_weight = vb
+            .get((c, 3, p, p), "patch_embed.proj.weight")?
+            .reshape((c, 3 * p * p))?;
+        let patch_embed = Linear::from_parts(patch_weight, vb.get(c, "patch_embed.proj.bias")?)?;
         Ok(Self {
             cls_token: vb.get((1, 1, c), "cls_token")?,
             pos_embed: vb.get((1, 1 + g * g, c), "pos_embed")?,
             mask_token: vb.get((1, c), "mask_token")?,
-            // Kernel == stride: the patch embedding is one GEMM over flattened patches.
-            patch_weight_t: patch_weight.reshape((c, 3 * p * p))?.t()?.contiguous()?,
-            patch_bias: vb.get(c, "patch_embed.proj.bias")?,
+            patch_embed,
             blocks,
             norm: LayerNorm::new(vb.pp("norm"), c)?,
             patch: p,
@@ -702,10 +793,7 @@ impl Dinov2 {
             .permute((0, 2, 4, 1, 3, 5))?
             .contiguous()?
             .reshape((b * g * g, 3 * p * p))?;
-        let tokens = patches
-            .matmul(&self.patch_weight_t)?
-            .broadcast_add(&self.patch_bias)?
-            .reshape((b, g * g, c))?;
+        let tokens = self.patch_embed.forward(&patches)?.reshape((b, g * g, c))?;
         let cls = self.cls_token.broadcast_as((b, 1, c))?;
         let mut x = Tensor::cat(&[&cls, &tokens], 1)?.broadcast_add(&self.pos_embed)?;
         let first_out = self.blocks.len() - 4;
@@ -721,6 +809,39 @@ impl Dinov2 {
             Ok(o) => Ok(o),
             Err(_) => bail!("DINOv2: expected four intermediate outputs"),
         }
+    }
+
+    /// Whether the weights are trainable variables (built from a `VarMap`), i.e. the forward
+    /// uses them live and differentiably; otherwise they are fixed copies and the forward runs
+    /// the fused inference kernels.
+    pub fn is_trainable(&self) -> bool {
+        self.patch_embed.is_live()
+    }
+
+    /// Every weight under its checkpoint key relative to `base_model.dino_model` and in the
+    /// checkpoint's layout (views of what the module holds; exact, the transposed copies are
+    /// transposed back), for writing a model whose backbone was frozen.
+    pub fn named_weights(&self) -> Result<Vec<(String, Tensor)>> {
+        let c = self.dim;
+        let p = self.patch;
+        let mut out = vec![
+            ("cls_token".to_string(), self.cls_token.clone()),
+            ("pos_embed".to_string(), self.pos_embed.clone()),
+            ("mask_token".to_string(), self.mask_token.clone()),
+            (
+                "patch_embed.proj.weight".to_string(),
+                self.patch_embed.weight()?.reshape((c, 3, p, p))?,
+            ),
+            (
+                "patch_embed.proj.bias".to_string(),
+                self.patch_embed.bias.clone(),
+            ),
+        ];
+        for (i, block) in self.blocks.iter().enumerate() {
+            block.named(&format!("blocks.{i}"), &mut out)?;
+        }
+        self.norm.named("norm", &mut out);
+        Ok(out)
     }
 }
 

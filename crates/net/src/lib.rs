@@ -14,3 +14,4 @@ pub mod gs_generator;
 pub mod model;
 pub mod plane;
 pub mod style_unet;
+pub mod train;

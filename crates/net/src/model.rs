@@ -30,10 +30,10 @@ pub struct GagAvatar {
 
 /// A reconstructed head: every Gaussian attribute except the expression Gaussians' positions,
 /// which each frame supplies. Attributes are `[B, N, k]` in the order
-/// `[expression (V), l0 (S*S), l1 (S*S)]`.
+/// `[expression (V), l0 (S*S), l1 (S*S)]` (no l1 with the `one_plane` ablation).
 #[derive(Debug, Clone)]
 pub struct Avatar {
-    /// Positions of the two lifted point sets, `[B, 2 S*S, 3]`.
+    /// Positions of the two lifted point sets, `[B, 2 S*S, 3]` (`[B, S*S, 3]` with `one_plane`).
     pub lifted_xyz: Tensor,
     pub colors: Tensor,
     pub opacities: Tensor,
@@ -204,23 +204,37 @@ impl GagAvatar {
         let enc = dir_encoding(&plane_dir)?;
         done(s_plane);
 
-        let expr = self.gen_g.forward(&self.head_base, &f_id, &enc)?;
+        let expr = if self.cfg.no_fid_in_expression {
+            self.gen_g
+                .forward(&self.head_base, &f_id.zeros_like()?, &enc)?
+        } else {
+            self.gen_g.forward(&self.head_base, &f_id, &enc)?
+        };
         done(s_g);
         let l0 = self.gen_l0.forward(&f_local, &enc)?;
         done(s_l0);
-        let l1 = self.gen_l1.forward(&f_local, &enc)?;
-        done(s_l1);
         let dir = plane_dir.unsqueeze(1)?;
         let xyz0 = (&plane_points + l0.distance.broadcast_mul(&dir)?)?;
-        let xyz1 = (&plane_points - l1.distance.broadcast_mul(&dir)?)?;
+        let (lifted_xyz, attrs) = if self.cfg.one_plane {
+            done(s_l1);
+            (xyz0, concat_attributes(&[&expr, &l0.attrs])?)
+        } else {
+            let l1 = self.gen_l1.forward(&f_local, &enc)?;
+            done(s_l1);
+            let xyz1 = (&plane_points - l1.distance.broadcast_mul(&dir)?)?;
+            (
+                Tensor::cat(&[xyz0, xyz1], 1)?,
+                concat_attributes(&[&expr, &l0.attrs, &l1.attrs])?,
+            )
+        };
         let GaussianAttributes {
             colors,
             opacities,
             scales,
             rotations,
-        } = concat_attributes(&[&expr, &l0.attrs, &l1.attrs])?;
+        } = attrs;
         let avatar = Avatar {
-            lifted_xyz: Tensor::cat(&[xyz0, xyz1], 1)?,
+            lifted_xyz,
             colors,
             opacities,
             scales,
@@ -310,8 +324,73 @@ impl GagAvatar {
         Ok(out.image)
     }
 
-    /// The neural renderer alone (coarse `[B, C, H, W]` -> fine RGB).
+    /// The neural renderer alone (coarse `[B, C, H, W]` -> fine RGB); with the
+    /// `no_neural_renderer` ablation, the coarse RGB channels.
     pub fn render(&self, coarse: &Tensor, noise: Noise) -> Result<Tensor> {
+        if self.cfg.no_neural_renderer {
+            return Ok(coarse.narrow(1, 0, 3)?.contiguous()?);
+        }
         Ok(self.renderer.forward(coarse, noise)?)
     }
+
+    /// The training pass (spec 1: both phases in one differentiable graph): source `i`
+    /// (`[B, 3, H, W]` in [0, 1], camera `[B, 3, 4]`) is reconstructed exactly as
+    /// [`Self::reconstruct`] does and drives target `i` (vertices `[B, V, 3]`, already scaled
+    /// by 5; camera `[B, 3, 4]`). Gradients reach every weight that is a variable (see
+    /// [`crate::train::trainable_model`]); for reproducible runs pass [`Noise::Seeded`].
+    pub fn train_forward(
+        &self,
+        source_image: &Tensor,
+        source_transform: &Tensor,
+        target_vertices: &Tensor,
+        target_transform: &Tensor,
+        noise: Noise,
+    ) -> Result<TrainOutput> {
+        let b = source_image.dims().first().copied().unwrap_or(0);
+        let tb = target_vertices.dims().first().copied().unwrap_or(0);
+        if b != tb {
+            return Err(input_err(
+                "target vertices",
+                format!("batch {tb} does not match the {b} source images (one target each)"),
+            ));
+        }
+        let avatar = self.reconstruct(source_image, source_transform)?;
+        let coarse = self.splat_coarse(&avatar, target_vertices, target_transform)?;
+        let fine = self.render(&coarse, noise)?;
+        Ok(TrainOutput {
+            avatar,
+            coarse,
+            fine,
+        })
+    }
+
+    /// Weights the model holds as fixed tensors rather than variables, under their checkpoint
+    /// keys in the checkpoint's layout: the DINOv2 backbone when it is not trainable, and the
+    /// renderer's noise buffers (buffers in the release, never trained).
+    pub fn fixed_weights(&self) -> Result<Vec<(String, Tensor)>> {
+        let mut out = Vec::new();
+        if !self.dino.is_trainable() {
+            for (k, t) in self.dino.named_weights()? {
+                out.push((format!("{}{k}", crate::train::BACKBONE_PREFIX), t));
+            }
+        }
+        for (i, t) in self.renderer.decoder().noise_buffers().iter().enumerate() {
+            out.push((
+                format!("upsampler.stylegan_decoder.noises.noise{i}"),
+                t.clone(),
+            ));
+        }
+        Ok(out)
+    }
+}
+
+/// The outputs of [`GagAvatar::train_forward`], all in one graph.
+#[derive(Debug, Clone)]
+pub struct TrainOutput {
+    /// The reconstructed avatar; `avatar.lifted_xyz` `[B, 2 S^2, 3]` feeds the point loss.
+    pub avatar: Avatar,
+    /// Splatted features `[B, C, H, W]`; channels 0..3 are the coarse RGB.
+    pub coarse: Tensor,
+    /// The fine RGB `[B, 3, H, W]`.
+    pub fine: Tensor,
 }

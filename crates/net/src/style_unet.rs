@@ -35,8 +35,31 @@ pub enum Noise {
     /// frames do not flicker.
     #[default]
     Fixed,
-    /// Fresh N(0, 1) noise per call and per sample, as the release does at inference.
+    /// Fresh N(0, 1) noise per call and per sample, as the release does at inference (and in
+    /// training), from candle's own unseeded generator.
     Fresh,
+    /// N(0, 1) noise like `Fresh`, but a function of the seed: the same seed gives the same
+    /// buffers, so a training run that derives the seed from its step reproduces itself when
+    /// resumed. Buffer `i` comes from its own stream of the seed, drawn sample after sample, so
+    /// sample 0 gets the same noise whatever the batch size.
+    Seeded(u64),
+}
+
+/// N(0, 1) noise `[batch, 1, r, r]` for buffer `index` from `seed` (see [`Noise::Seeded`]).
+pub fn seeded_noise(
+    seed: u64,
+    index: usize,
+    batch: usize,
+    r: usize,
+    like: &Tensor,
+) -> Result<Tensor> {
+    // SplitMix64 finaliser of (seed, index): independent streams per buffer.
+    let mut z = seed ^ (index as u64 + 1).wrapping_mul(0xD1B5_4A32_D192_ED03);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    let mut rng = gagavatar_splat::testscene::Rng::new(z ^ (z >> 31));
+    let v: Vec<f64> = (0..batch * r * r).map(|_| rng.normal()).collect();
+    Tensor::from_vec(v, (batch, 1, r, r), like.device())?.to_dtype(like.dtype())
 }
 
 /// A ResBlock of the U-Net: `conv1` 3x3 (in -> in), leaky ReLU, bilinear resize (x0.5 down,
@@ -431,7 +454,13 @@ impl StyleGan2Decoder {
                 let r = noise_resolution(i);
                 Tensor::randn(0f32, 1f32, (batch, 1, r, r), like.device())?.to_dtype(like.dtype())
             }
+            Noise::Seeded(seed) => seeded_noise(seed, i, batch, noise_resolution(i), like),
         }
+    }
+
+    /// The fixed noise buffers `noises.noise{i}`, in order (buffers, not trained parameters).
+    pub fn noise_buffers(&self) -> &[Tensor] {
+        &self.noises
     }
 
     /// `code` [B, style_dim] and the SFT (scale, shift) pairs for resolutions 8 .. image_size
