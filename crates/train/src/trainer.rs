@@ -1,0 +1,875 @@
+//! The training loop (spec section 11): a [`TrainState`] (model, optimiser, loss) that takes
+//! one step on a batch, and a [`Run`] that owns a run folder and drives the state with pairs
+//! from a dataset, validation, logging and checkpoints.
+//!
+//! - Step: both phases in one graph ([`GagAvatar::train_forward`]), the release's loss
+//!   ([`TrainLosses`]), backward, then Adam. The renderer's noise is
+//!   [`Noise::Seeded`] from `(seed, step)`.
+//! - NaN guard: a step whose loss or any gradient is NaN or infinite changes nothing (no
+//!   update, the optimiser and its schedule stay where they were); it is reported, logged with
+//!   `"skipped"` in `metrics.jsonl` and counted.
+//! - Frozen parts: what the configuration freezes (the DINOv2 backbone in the release) is not a
+//!   variable at all (see `gagavatar_net::train`), so neither gradient nor update can reach it.
+//! - Run folder: `config.toml` (the effective configuration), `metrics.jsonl` (one JSON object
+//!   per logged step: every step up to `log.every_step_until`, then every `log.every`, and
+//!   every validation, checkpoint or skipped step), `val/step_NNNNNNN.png` (target | coarse |
+//!   fine per validation pair), `checkpoint.safetensors` and `weights.safetensors` (see
+//!   [`crate::ckpt`]). Every file is replaced atomically.
+//! - Resume: [`Run::resume`] restores weights, optimiser state, step and configuration from the
+//!   checkpoint; pairs and noise are functions of `(seed, step)`, so the resumed run computes
+//!   what the uninterrupted run computes.
+//! - Errors: a dataset that cannot be opened (LMDB, pickle, splits) or whose first batch cannot
+//!   be loaded fails before the run folder is touched; a frame that fails later stops the run
+//!   with an error naming it, and the last checkpoint (if any) is left as it was.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use candle_core::{DType, Device, Tensor, Var};
+use candle_nn::VarMap;
+use gagavatar_data::Dataset;
+use gagavatar_flame::{synthesize, FlameAsset, FlameConfig, FlameModel, LoadOptions, FLAME_SCALE};
+use gagavatar_net::checkpoint::{read_weights, write_tensors};
+use gagavatar_net::model::GagAvatar;
+use gagavatar_net::style_unet::Noise;
+use gagavatar_net::train::{export_weights, trainable_model};
+use gagavatar_net::ModelConfig;
+use serde_json::json;
+
+use crate::adam::Adam;
+use crate::ckpt::{
+    read_checkpoint, write_checkpoint, TrainMeta, CHECKPOINT_FILE, CHECKPOINT_FORMAT, CONFIG_FILE,
+    METRICS_FILE, VAL_DIR, WEIGHTS_FILE,
+};
+use crate::config::TrainConfig;
+use crate::eval::{evaluate, write_grid, EvalReport};
+use crate::losses::{LossInputs, TrainLosses};
+use crate::pairs::{eval_pairs, mix, BatchTensors, Loader, Pair, PairSampler, SampleSource};
+use crate::perceptual::{PerceptualLoss, PERCEP_PREFIX};
+use crate::run_error::{ckpt_err, config_err, io_err, RunError, RunResult};
+
+/// Salt of the renderer-noise stream.
+const SALT_NOISE: u64 = 0x4E01_5E00;
+
+/// What a run reports while it works. Every method has a do-nothing default.
+pub trait Monitor {
+    /// Something the user should know (a term switched off, a skipped step, ...).
+    fn warn(&self, _msg: &str) {}
+    /// Training starts at 0-based step `first` and stops at `until`.
+    fn started(&self, _first: u64, _until: u64) {}
+    fn step(&self, _report: &StepReport) {}
+    fn validation(&self, _step: u64, _report: &EvalReport) {}
+    fn checkpoint(&self, _step: u64, _path: &Path) {}
+    /// Polled before each step: `true` ends the run after writing a checkpoint.
+    fn stop_requested(&self) -> bool {
+        false
+    }
+}
+
+/// A [`Monitor`] that ignores everything.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct NoMonitor;
+impl Monitor for NoMonitor {}
+
+/// The outcome of one step.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepReport {
+    /// 1-based number of the step (the release's `iter_idx`).
+    pub step: u64,
+    pub loss: f64,
+    pub img: f64,
+    pub box_l1: f64,
+    pub percep: Option<f64>,
+    pub point: Option<f64>,
+    /// The base learning rate the step used (groups scale it).
+    pub lr: f64,
+    /// L2 norm of all gradients (NaN when the step was skipped before backward).
+    pub grad_norm: f64,
+    /// Why the NaN guard skipped the step.
+    pub skipped: Option<String>,
+    /// Trainable parameters that got no gradient.
+    pub no_grad: Vec<String>,
+    pub seconds: f64,
+}
+
+/// Parameters that get no gradient by construction, in the release too: the ViT's mask token
+/// (used only for masked inputs), the first DPT fusion block's first residual unit (its input
+/// is never added), the StyleUNet's `toRGB` skip outputs (the release discards them), and what
+/// an ablation switches off.
+pub fn gets_no_gradient(cfg: &ModelConfig, key: &str) -> bool {
+    key == "base_model.dino_model.mask_token"
+        || key.starts_with("base_model.refinenet.0.resConfUnit1.")
+        || key.starts_with("upsampler.toRGB.")
+        || (cfg.one_plane && key.starts_with("gs_generator_l1."))
+        || (cfg.no_neural_renderer && key.starts_with("upsampler."))
+}
+
+/// Model, optimiser and loss: one step at a time, no files.
+pub struct TrainState {
+    pub cfg: TrainConfig,
+    pub model: GagAvatar,
+    pub varmap: VarMap,
+    pub adam: Adam,
+    pub losses: TrainLosses,
+    /// Steps completed (skipped ones included): the next step's 0-based index.
+    pub step: u64,
+    /// Steps the NaN guard skipped.
+    pub skipped_steps: u64,
+    poisoned: BTreeSet<u64>,
+}
+
+impl std::fmt::Debug for TrainState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TrainState")
+            .field("model", &self.cfg.model.name)
+            .field("step", &self.step)
+            .field("skipped_steps", &self.skipped_steps)
+            .finish()
+    }
+}
+
+fn named_vars(varmap: &VarMap) -> RunResult<Vec<(String, Var)>> {
+    let data = varmap
+        .data()
+        .lock()
+        .map_err(|_| config_err(None, "the VarMap lock is poisoned"))?;
+    Ok(data.iter().map(|(k, v)| (k.clone(), v.clone())).collect())
+}
+
+impl TrainState {
+    /// A fresh state: weights from `init` (a checkpoint's tensors; `percep_loss.*` are ignored)
+    /// or seeded from `cfg.train.seed`; Adam with the configuration's groups and schedule.
+    pub fn new(
+        cfg: TrainConfig,
+        init: Option<HashMap<String, Tensor>>,
+        percep: Option<PerceptualLoss>,
+        device: &Device,
+    ) -> RunResult<Self> {
+        let (model, varmap) = trainable_model(&cfg.model, init, cfg.train.seed, device)?;
+        let adam = Adam::new(named_vars(&varmap)?, cfg.adam())?;
+        let losses = TrainLosses::new(cfg.losses(), percep);
+        Ok(Self {
+            cfg,
+            model,
+            varmap,
+            adam,
+            losses,
+            step: 0,
+            skipped_steps: 0,
+            poisoned: BTreeSet::new(),
+        })
+    }
+
+    /// Restores a state from a checkpoint's tensors (`model`, `optimizer`) at step `step`.
+    pub fn restore(
+        cfg: TrainConfig,
+        model: HashMap<String, Tensor>,
+        optimizer: &HashMap<String, Tensor>,
+        step: u64,
+        skipped_steps: u64,
+        percep: Option<PerceptualLoss>,
+        device: &Device,
+    ) -> RunResult<Self> {
+        let mut s = Self::new(cfg, Some(model), percep, device)?;
+        s.adam.load_state(optimizer)?;
+        s.step = step;
+        s.skipped_steps = skipped_steps;
+        Ok(s)
+    }
+
+    /// The trainable parameters by checkpoint key.
+    pub fn vars(&self) -> RunResult<Vec<(String, Var)>> {
+        named_vars(&self.varmap)
+    }
+
+    /// Makes the loss of 0-based step `step` NaN, as a numerical blow-up would: exercises the
+    /// NaN guard (tests, debugging).
+    pub fn poison_step(&mut self, step: u64) {
+        self.poisoned.insert(step);
+    }
+
+    /// The seed of the renderer noise at 0-based step `step`.
+    pub fn noise_seed(&self, step: u64) -> u64 {
+        mix(mix(self.cfg.train.seed, SALT_NOISE), step)
+    }
+
+    /// One optimisation step on `batch` (which must be the batch of step `self.step`).
+    pub fn train_step(&mut self, batch: &BatchTensors) -> RunResult<StepReport> {
+        let t0 = Instant::now();
+        let step = self.step;
+        let adam_cfg = self.adam.config();
+        let lr = adam_cfg.lr * adam_cfg.factor(self.adam.schedule_step());
+        let out = self.model.train_forward(
+            &batch.source_image,
+            &batch.source_transform,
+            &batch.target_vertices,
+            &batch.target_transform,
+            Noise::Seeded(self.noise_seed(step)),
+        )?;
+        let terms = self.losses.compute(&LossInputs {
+            coarse: &out.coarse,
+            fine: &out.fine,
+            gt: &batch.target_image,
+            bbox: &batch.bbox,
+            lifted: &out.avatar.lifted_xyz,
+            targets: &batch.target_vertices,
+        })?;
+        let (mut total, mut loss) = (terms.total.tensor.clone(), terms.total.value);
+        if self.poisoned.contains(&step) {
+            total = (total * f64::NAN)?;
+            loss = f64::NAN;
+        }
+        let mut report = StepReport {
+            step: step + 1,
+            loss,
+            img: terms.img.value,
+            box_l1: terms.box_l1.value,
+            percep: terms.percep.as_ref().map(|t| t.value),
+            point: terms.point.as_ref().map(|t| t.value),
+            lr,
+            grad_norm: f64::NAN,
+            skipped: None,
+            no_grad: Vec::new(),
+            seconds: 0.0,
+        };
+        if !loss.is_finite() {
+            report.skipped = Some(format!("the loss is {loss}"));
+        } else {
+            let grads = total.backward()?;
+            let vars = self.vars()?;
+            let mut sums = Vec::with_capacity(vars.len());
+            for (name, v) in &vars {
+                match grads.get(v.as_tensor()) {
+                    Some(g) => sums.push(g.to_dtype(DType::F64)?.sqr()?.sum_all()?),
+                    None => report.no_grad.push(name.clone()),
+                }
+            }
+            let sq = if sums.is_empty() {
+                0.0
+            } else {
+                Tensor::stack(&sums, 0)?.sum_all()?.to_scalar::<f64>()?
+            };
+            report.grad_norm = sq.sqrt();
+            if sq.is_finite() {
+                self.adam.step(&grads)?;
+            } else {
+                let mut bad = Vec::new();
+                for ((name, _), s) in vars
+                    .iter()
+                    .filter(|(n, _)| !report.no_grad.contains(n))
+                    .zip(&sums)
+                {
+                    if !s.to_scalar::<f64>()?.is_finite() {
+                        bad.push(name.clone());
+                    }
+                }
+                let shown = bad.iter().take(3).cloned().collect::<Vec<_>>().join(", ");
+                report.skipped = Some(format!(
+                    "non-finite gradients in {} parameters ({shown}{})",
+                    bad.len(),
+                    if bad.len() > 3 { ", ..." } else { "" }
+                ));
+            }
+        }
+        report.no_grad.sort();
+        if report.skipped.is_some() {
+            self.skipped_steps += 1;
+        }
+        self.step += 1;
+        report.seconds = t0.elapsed().as_secs_f64();
+        Ok(report)
+    }
+
+    /// Every model weight in the release key layout (trained copies and fixed weights).
+    pub fn export(&self) -> RunResult<BTreeMap<String, Tensor>> {
+        Ok(export_weights(&self.model, &self.varmap)?)
+    }
+}
+
+/// Loads a FLAME asset (`None`: the built-in synthetic one, `synthesize(0)`) with all its
+/// components, on the host in f32 (samples are built there).
+pub fn load_flame(path: Option<&Path>) -> RunResult<FlameModel> {
+    let asset = match path {
+        Some(p) => FlameAsset::load(p, &LoadOptions::default()).map_err(|e| RunError::Flame {
+            what: Some(p.display().to_string()),
+            reason: e.to_string(),
+        })?,
+        None => synthesize(0),
+    };
+    let cfg = FlameConfig {
+        n_shape: asset.layout.shape,
+        n_exp: asset.layout.expression,
+        scale: FLAME_SCALE,
+    };
+    Ok(FlameModel::new(&asset, cfg, &Device::Cpu, DType::F32)?)
+}
+
+/// Perceptual-network weights (`percep_loss.*` keys) from a file: the release `.pt`, or
+/// safetensors with or without the prefix.
+fn read_percep_tensors(path: &Path) -> RunResult<HashMap<String, Tensor>> {
+    let w = read_weights(path)?;
+    let prefixed = w.tensors.keys().any(|k| k.starts_with(PERCEP_PREFIX));
+    let out: HashMap<String, Tensor> = w
+        .tensors
+        .into_iter()
+        .filter_map(|(k, v)| {
+            if prefixed {
+                k.starts_with(PERCEP_PREFIX).then_some((k, v))
+            } else {
+                Some((format!("{PERCEP_PREFIX}{k}"), v))
+            }
+        })
+        .collect();
+    if out.is_empty() {
+        return Err(RunError::Checkpoint {
+            path: path.to_owned(),
+            reason: "holds no perceptual-network weights".into(),
+        });
+    }
+    Ok(out)
+}
+
+/// Summary of [`Run::train`].
+#[derive(Debug, Clone)]
+pub struct RunSummary {
+    /// 0-based step the call started at, and the step count reached.
+    pub first: u64,
+    pub last: u64,
+    pub skipped_steps: u64,
+    pub seconds: f64,
+    /// Ended early by [`Monitor::stop_requested`] (a checkpoint was written).
+    pub stopped: bool,
+    pub last_loss: Option<f64>,
+    pub last_validation: Option<EvalReport>,
+}
+
+/// A training run with its folder (see the module docs).
+pub struct Run {
+    pub state: TrainState,
+    dir: PathBuf,
+    device: Device,
+    source: Arc<SampleSource>,
+    sampler: Arc<PairSampler>,
+    val_pairs: Vec<Pair>,
+    /// `percep_loss.*` tensors, saved in checkpoints so a resume needs no other file.
+    percep_tensors: HashMap<String, Tensor>,
+    metrics: Vec<String>,
+    warned_no_grad: bool,
+}
+
+impl std::fmt::Debug for Run {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Run")
+            .field("dir", &self.dir)
+            .field("state", &self.state)
+            .finish()
+    }
+}
+
+/// Everything a run needs besides the state, checked before anything is written.
+struct Prepared {
+    source: Arc<SampleSource>,
+    sampler: Arc<PairSampler>,
+    val_pairs: Vec<Pair>,
+}
+
+fn prepare(cfg: &TrainConfig, first_step: u64, monitor: &dyn Monitor) -> RunResult<Prepared> {
+    let dir = cfg
+        .data
+        .dir
+        .as_deref()
+        .ok_or_else(|| config_err(None, "no dataset: pass --data DIR (or set [data] dir)"))?;
+    let dataset = Dataset::open(dir)?;
+    let (sampler, single) = PairSampler::new(
+        &dataset.splits().train,
+        cfg.train.seed,
+        cfg.train.batch,
+        cfg.data.cross_identity,
+    )?;
+    if single > 0 {
+        monitor.warn(&format!(
+            "{single} videos of the train split have a single frame and form no pair; left out"
+        ));
+    }
+    let flame = load_flame(cfg.data.flame.as_deref())?;
+    if flame.n_vertices != cfg.model.n_vertices {
+        return Err(RunError::Flame {
+            what: cfg.data.flame.as_ref().map(|p| p.display().to_string()),
+            reason: format!(
+                "{} vertices, the model expects {}",
+                flame.n_vertices, cfg.model.n_vertices
+            ),
+        });
+    }
+    // Codes longer than the FLAME asset takes would fail mid-run: check every record now.
+    let (ns, ne) = (flame.config.n_shape, flame.config.n_exp);
+    let splits = dataset.splits();
+    for (split, names) in splits.splits() {
+        for name in names {
+            let r = dataset.record(name)?;
+            for (field, len, max) in [
+                ("shapecode", r.shapecode.len(), ns),
+                ("expcode", r.expcode.len(), ne),
+                ("posecode", r.posecode.len(), 6),
+                ("eyecode", r.eyecode.len(), 6),
+            ] {
+                if len > max {
+                    return Err(RunError::Sample {
+                        dir: dir.to_owned(),
+                        frame: name.clone(),
+                        reason: format!(
+                            "`{field}` has {len} values, the FLAME asset takes {max} (split `{split}`)"
+                        ),
+                    });
+                }
+            }
+        }
+    }
+    let val_split = match cfg.val.split.as_str() {
+        "train" => &splits.train,
+        "test" => &splits.test,
+        _ => &splits.val,
+    };
+    let val_pairs = eval_pairs(val_split, Some(cfg.val.frames));
+    if cfg.val.every > 0 && val_pairs.is_empty() {
+        monitor.warn(&format!(
+            "the `{}` split has no pair (a video with two or more frames): no validation",
+            cfg.val.split
+        ));
+    }
+    let source = Arc::new(SampleSource::new(
+        Arc::new(dataset),
+        Arc::new(flame),
+        cfg.model.image_size,
+    ));
+    if cfg.data.check_images {
+        use rayon::prelude::*;
+        let mut names: Vec<&String> = splits_names(&source.dataset);
+        names.sort();
+        names.dedup();
+        names
+            .par_iter()
+            .try_for_each(|n| source.image(n).map(|_| ()))?;
+    }
+    // The first batch: a broken first sample fails before the run folder is touched.
+    source.load_batch(first_step, &sampler.pairs(first_step))?;
+    Ok(Prepared {
+        source,
+        sampler: Arc::new(sampler),
+        val_pairs,
+    })
+}
+
+fn splits_names(d: &Dataset) -> Vec<&String> {
+    let s = d.splits();
+    s.train.iter().chain(&s.val).chain(&s.test).collect()
+}
+
+/// The `percep_loss.*` tensors and the loss built from them, per the configuration: an
+/// explicit `[loss] percep` file, else the `init` weights when they carry them.
+fn percep_setup(
+    cfg: &TrainConfig,
+    init: Option<&HashMap<String, Tensor>>,
+    device: &Device,
+    monitor: &dyn Monitor,
+) -> RunResult<(HashMap<String, Tensor>, Option<PerceptualLoss>)> {
+    if cfg.loss.percep_weight == 0.0 {
+        return Ok((HashMap::new(), None));
+    }
+    let tensors = match (&cfg.loss.percep, init) {
+        (Some(p), _) => read_percep_tensors(p)?,
+        (None, Some(init)) => init
+            .iter()
+            .filter(|(k, _)| k.starts_with(PERCEP_PREFIX))
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect(),
+        (None, None) => HashMap::new(),
+    };
+    let loss = PerceptualLoss::from_tensors(&tensors, DType::F32, device)?;
+    if loss.is_none() {
+        monitor.warn(
+            "no perceptual-network weights (percep_loss.*: pass --percep GAGAvatar.pt, or --init \
+             a file that has them): the perceptual term is off",
+        );
+    }
+    Ok((tensors, loss))
+}
+
+fn remove_if_exists(path: &Path) -> RunResult<()> {
+    match std::fs::remove_file(path) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(io_err(path, "cannot remove")(e)),
+        _ => Ok(()),
+    }
+}
+
+/// The `step` field of a metrics line.
+fn line_step(line: &str) -> Option<u64> {
+    serde_json::from_str::<serde_json::Value>(line)
+        .ok()?
+        .get("step")?
+        .as_u64()
+}
+
+impl Run {
+    /// Starts a new run in `dir` (created; must not hold a run unless `overwrite`, which
+    /// replaces the run files there). Everything that can be checked is checked before
+    /// anything is written.
+    pub fn create(
+        mut cfg: TrainConfig,
+        dir: &Path,
+        overwrite: bool,
+        device: &Device,
+        monitor: &dyn Monitor,
+    ) -> RunResult<Self> {
+        cfg.pin()?;
+        cfg.validate().map_err(|e| config_err(None, e))?;
+        if dir.exists() {
+            if !dir.is_dir() {
+                return Err(ckpt_err(dir, "exists and is not a folder"));
+            }
+            if !overwrite {
+                if dir.join(CHECKPOINT_FILE).exists() {
+                    return Err(ckpt_err(
+                        dir,
+                        "holds a training run: continue it with --resume, or choose another \
+                         folder (--force starts over)",
+                    ));
+                }
+                let non_empty = std::fs::read_dir(dir)
+                    .map_err(io_err(dir, "cannot read"))?
+                    .next()
+                    .is_some();
+                if non_empty {
+                    return Err(ckpt_err(
+                        dir,
+                        "exists and is not empty (choose a new folder, or --force)",
+                    ));
+                }
+            }
+        }
+        let prepared = prepare(&cfg, 0, monitor)?;
+        let init = match &cfg.train.init {
+            Some(p) => Some(read_weights(p)?.tensors),
+            None => None,
+        };
+        let (percep_tensors, percep) = percep_setup(&cfg, init.as_ref(), device, monitor)?;
+        let state = TrainState::new(cfg, init, percep, device)?;
+
+        std::fs::create_dir_all(dir).map_err(io_err(dir, "cannot create"))?;
+        for f in [CHECKPOINT_FILE, WEIGHTS_FILE, METRICS_FILE, CONFIG_FILE] {
+            remove_if_exists(&dir.join(f))?;
+        }
+        // A replaced run's validation grids would mix with the new ones.
+        if let Ok(entries) = std::fs::read_dir(dir.join(VAL_DIR)) {
+            for e in entries.flatten() {
+                let name = e.file_name().to_string_lossy().into_owned();
+                if name.starts_with("step_") && name.ends_with(".png") {
+                    remove_if_exists(&e.path())?;
+                }
+            }
+        }
+        let run = Self {
+            state,
+            dir: dir.to_owned(),
+            device: device.clone(),
+            source: prepared.source,
+            sampler: prepared.sampler,
+            val_pairs: prepared.val_pairs,
+            percep_tensors,
+            metrics: Vec::new(),
+            warned_no_grad: false,
+        };
+        run.write_config()?;
+        Ok(run)
+    }
+
+    /// Continues the run in `dir` from its checkpoint; `steps` replaces the total step count
+    /// (the decay schedule stays the one the run started with).
+    pub fn resume(
+        dir: &Path,
+        steps: Option<u64>,
+        device: &Device,
+        monitor: &dyn Monitor,
+    ) -> RunResult<Self> {
+        let ck_path = dir.join(CHECKPOINT_FILE);
+        if !ck_path.exists() {
+            return Err(ckpt_err(
+                dir,
+                format!(
+                    "no {CHECKPOINT_FILE} to resume from (a run writes one every \
+                     checkpoint_every steps, at its end and when stopped with Ctrl-C)"
+                ),
+            ));
+        }
+        let ck = read_checkpoint(&ck_path, device)?;
+        let mut cfg = TrainConfig::from_toml_str(&ck.meta.config_toml, Some(&ck_path))?;
+        if cfg.model != ck.model_config {
+            return Err(ckpt_err(
+                &ck_path,
+                "the model configuration in the metadata disagrees with the stored config",
+            ));
+        }
+        if let Ok(text) = std::fs::read_to_string(dir.join(CONFIG_FILE)) {
+            if TrainConfig::from_toml_str(&text, None).ok().as_ref() != Some(&cfg) {
+                monitor.warn(&format!(
+                    "{} differs from the configuration stored in the checkpoint; resuming with \
+                     the stored one (a resumed run keeps its settings)",
+                    dir.join(CONFIG_FILE).display()
+                ));
+            }
+        }
+        if let Some(n) = steps {
+            cfg.train.steps = n;
+        }
+        cfg.pin()?;
+        let prepared = prepare(&cfg, ck.meta.step, monitor)?;
+        let percep = PerceptualLoss::from_tensors(&ck.model, DType::F32, device)?;
+        if percep.is_none() && cfg.loss.percep_weight > 0.0 {
+            monitor.warn(
+                "the checkpoint has no perceptual-network weights: the perceptual term is off",
+            );
+        }
+        let percep_tensors: HashMap<String, Tensor> = ck
+            .model
+            .iter()
+            .filter(|(k, _)| k.starts_with(PERCEP_PREFIX))
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect();
+        let state = TrainState::restore(
+            cfg,
+            ck.model,
+            &ck.optimizer,
+            ck.meta.step,
+            ck.meta.skipped_steps,
+            percep,
+            device,
+        )?;
+        let metrics = match std::fs::read_to_string(dir.join(METRICS_FILE)) {
+            Ok(text) => text
+                .lines()
+                .filter(|l| line_step(l).is_some_and(|s| s <= ck.meta.step))
+                .map(str::to_string)
+                .collect(),
+            Err(_) => Vec::new(),
+        };
+        let run = Self {
+            state,
+            dir: dir.to_owned(),
+            device: device.clone(),
+            source: prepared.source,
+            sampler: prepared.sampler,
+            val_pairs: prepared.val_pairs,
+            percep_tensors,
+            metrics,
+            warned_no_grad: true,
+        };
+        run.write_config()?;
+        Ok(run)
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    pub fn config(&self) -> &TrainConfig {
+        &self.state.cfg
+    }
+
+    /// Pairs the loop draws per epoch, and the videos they come from.
+    pub fn train_pairs(&self) -> (usize, usize) {
+        (self.sampler.len(), self.sampler.videos())
+    }
+
+    pub fn val_pairs(&self) -> &[Pair] {
+        &self.val_pairs
+    }
+
+    fn write_config(&self) -> RunResult<()> {
+        let path = self.dir.join(CONFIG_FILE);
+        let text = self.state.cfg.to_toml_string()?;
+        gagavatar_splat::scene::write_atomic(&path, text.as_bytes())
+            .map_err(|e| ckpt_err(&path, e.to_string()))
+    }
+
+    fn write_metrics(&self) -> RunResult<()> {
+        let path = self.dir.join(METRICS_FILE);
+        let mut text = self.metrics.join("\n");
+        text.push('\n');
+        gagavatar_splat::scene::write_atomic(&path, text.as_bytes())
+            .map_err(|e| ckpt_err(&path, e.to_string()))
+    }
+
+    /// Writes `checkpoint.safetensors` and `weights.safetensors` for the current step.
+    pub fn save_checkpoint(&self) -> RunResult<PathBuf> {
+        let s = &self.state;
+        let mut model = s.export()?;
+        let weights_path = self.dir.join(WEIGHTS_FILE);
+        write_tensors(&weights_path, &model, Some(&s.cfg.model))?;
+        for (k, t) in &self.percep_tensors {
+            model.insert(k.clone(), t.clone());
+        }
+        let meta = TrainMeta {
+            format: CHECKPOINT_FORMAT,
+            step: s.step,
+            seed: s.cfg.train.seed,
+            skipped_steps: s.skipped_steps,
+            config_toml: s.cfg.to_toml_string()?,
+        };
+        let path = self.dir.join(CHECKPOINT_FILE);
+        write_checkpoint(&path, &model, &s.adam.state_tensors()?, &s.cfg.model, &meta)?;
+        Ok(path)
+    }
+
+    /// Validates on the configured split (no pairs: `None`) and writes the grid PNG.
+    pub fn validate(&self) -> RunResult<Option<EvalReport>> {
+        if self.val_pairs.is_empty() {
+            return Ok(None);
+        }
+        let cfg = &self.state.cfg;
+        let (report, grid) = evaluate(
+            &self.state.model,
+            &self.source,
+            &cfg.val.split,
+            &self.val_pairs,
+            cfg.val.grid_rows,
+            &mut |_, _| true,
+        )?;
+        if !grid.is_empty() {
+            let dir = self.dir.join(VAL_DIR);
+            std::fs::create_dir_all(&dir).map_err(io_err(&dir, "cannot create"))?;
+            write_grid(
+                &dir.join(format!("step_{:07}.png", self.state.step)),
+                &grid,
+                cfg.model.image_size,
+            )?;
+        }
+        Ok(Some(report))
+    }
+
+    /// Trains up to `train.steps` (see the module docs).
+    pub fn train(&mut self, monitor: &dyn Monitor) -> RunResult<RunSummary> {
+        let t0 = Instant::now();
+        let until = self.state.cfg.train.steps;
+        let first = self.state.step;
+        let mut summary = RunSummary {
+            first,
+            last: first,
+            skipped_steps: self.state.skipped_steps,
+            seconds: 0.0,
+            stopped: false,
+            last_loss: None,
+            last_validation: None,
+        };
+        if first >= until {
+            monitor.warn(&format!(
+                "the run is already at step {first} of {until}: nothing to train"
+            ));
+            return Ok(summary);
+        }
+        let data = &self.state.cfg.data;
+        let mut loader = Loader::start(
+            self.source.clone(),
+            self.sampler.clone(),
+            first,
+            until,
+            data.workers,
+            data.prefetch,
+        );
+        monitor.started(first, until);
+        while self.state.step < until {
+            if monitor.stop_requested() {
+                let path = self.save_checkpoint()?;
+                monitor.checkpoint(self.state.step, &path);
+                summary.stopped = true;
+                break;
+            }
+            let batch = loader.next_batch()?;
+            if batch.step != self.state.step {
+                return Err(RunError::Stopped {
+                    step: self.state.step,
+                    reason: format!("the loader delivered step {} instead", batch.step),
+                });
+            }
+            let tensors = batch.to_tensors(&self.device)?;
+            let report = self.state.train_step(&tensors)?;
+            if let Some(why) = &report.skipped {
+                monitor.warn(&format!(
+                    "step {}: skipped by the NaN guard ({why}); no update",
+                    report.step
+                ));
+            }
+            if !self.warned_no_grad && report.skipped.is_none() {
+                self.warned_no_grad = true;
+                let unexpected: Vec<&String> = report
+                    .no_grad
+                    .iter()
+                    .filter(|k| !gets_no_gradient(&self.state.cfg.model, k))
+                    .collect();
+                if !unexpected.is_empty() {
+                    monitor.warn(&format!(
+                        "{} trainable parameters got no gradient: {unexpected:?}",
+                        unexpected.len()
+                    ));
+                }
+            }
+            let s = report.step;
+            let cfg = &self.state.cfg;
+            let val_now = cfg.val.every > 0
+                && (s % cfg.val.every == 0 || s == until)
+                && !self.val_pairs.is_empty();
+            let ckpt_now = (cfg.train.checkpoint_every > 0 && s % cfg.train.checkpoint_every == 0)
+                || s == until;
+            let log_now = s <= cfg.log.every_step_until
+                || (cfg.log.every > 0 && s % cfg.log.every == 0)
+                || val_now
+                || ckpt_now
+                || report.skipped.is_some();
+            let mut line = json!({
+                "step": s,
+                "loss": report.loss,
+                "img": report.img,
+                "box": report.box_l1,
+                "lr": report.lr,
+                "grad_norm": report.grad_norm,
+                "step_s": report.seconds,
+                "wall_s": t0.elapsed().as_secs_f64(),
+            });
+            if let Some(p) = report.percep {
+                line["percep"] = json!(p);
+            }
+            if let Some(p) = report.point {
+                line["point"] = json!(p);
+            }
+            if let Some(why) = &report.skipped {
+                line["skipped"] = json!(why);
+            }
+            if val_now {
+                if let Some(v) = self.validate()? {
+                    let (f, c) = (v.fine(), v.coarse());
+                    line["val_psnr"] = json!(f.psnr);
+                    line["val_ssim"] = json!(f.ssim);
+                    line["val_psnr_coarse"] = json!(c.psnr);
+                    line["val_ssim_coarse"] = json!(c.ssim);
+                    monitor.validation(s, &v);
+                    summary.last_validation = Some(v);
+                }
+            }
+            if log_now {
+                self.metrics.push(line.to_string());
+                self.write_metrics()?;
+            }
+            if ckpt_now {
+                let path = self.save_checkpoint()?;
+                monitor.checkpoint(s, &path);
+            }
+            summary.last_loss = Some(report.loss);
+            monitor.step(&report);
+        }
+        summary.last = self.state.step;
+        summary.skipped_steps = self.state.skipped_steps;
+        summary.seconds = t0.elapsed().as_secs_f64();
+        Ok(summary)
+    }
+}
