@@ -197,13 +197,14 @@ fn bench_model(args: ModelBench) -> Result<()> {
             for (k, (s, v)) in w {
                 map.insert(k, Tensor::from_vec(v, s, &dev)?);
             }
-            let vb = candle_nn::VarBuilder::from_tensors(map, candle_core::DType::F32, &dev);
-            GagAvatar::new(&cfg, vb)?
+            gagavatar_net::checkpoint::build_model(&cfg, map, &dev)?
         }
     };
+    let rss_after_load = peak_rss_mib();
     let size = cfg.image_size;
     let image = Tensor::rand(0f32, 1f32, (1, 3, size, size), &dev)?;
-    let tm = gagavatar_splat::Camera::look_at_origin_matrix(9.0, 0.1, 0.05);
+    // The release's frontal camera is yaw = pi (R = diag(-1, 1, -1)); slightly off-axis.
+    let tm = gagavatar_splat::Camera::look_at_origin_matrix(9.0, std::f64::consts::PI + 0.1, 0.05);
     let tm: Vec<f32> = tm.iter().flatten().map(|&x| x as f32).collect();
     let tm = Tensor::from_vec(tm, (1, 3, 4), &dev)?;
     let verts = Tensor::randn(0f32, 0.4, (1, cfg.n_vertices, 3), &dev)?;
@@ -222,14 +223,22 @@ fn bench_model(args: ModelBench) -> Result<()> {
             let mut t = Vec::with_capacity(names.len());
             let start = Instant::now();
             let mut lap = start;
-            let (avatar, _) = model.reconstruct_staged(&image, &tm, &mut |_| {
+            let (avatar, _) = model.reconstruct_staged(&image, &tm, &mut |name| {
                 t.push(lap.elapsed().as_secs_f64());
+                if std::env::var_os("GAGAVATAR_STAGE_RSS").is_some() {
+                    eprintln!("{name}: peak {:?} MiB", peak_rss_mib());
+                    let _ = std::fs::write("/proc/self/clear_refs", "5");
+                }
                 lap = Instant::now();
             })?;
             t.push(start.elapsed().as_secs_f64());
             let d0 = Instant::now();
             let coarse = model.splat_coarse(&avatar, &verts, &tm)?;
             t.push(d0.elapsed().as_secs_f64());
+            if std::env::var_os("GAGAVATAR_STAGE_RSS").is_some() {
+                eprintln!("splat: peak {:?} MiB", peak_rss_mib());
+                let _ = std::fs::write("/proc/self/clear_refs", "5");
+            }
             let r0 = Instant::now();
             model.render(&coarse, Noise::Fixed)?;
             t.push(r0.elapsed().as_secs_f64());
@@ -250,6 +259,9 @@ fn bench_model(args: ModelBench) -> Result<()> {
     );
     for (k, name) in names.iter().enumerate() {
         println!("  {name:<22} {:>9.1} ms", 1e3 * median(&mut times[k]));
+    }
+    if let Some(mib) = rss_after_load {
+        println!("  peak RSS after loading {mib:>9.0} MiB");
     }
     if let Some(mib) = peak_rss_mib() {
         println!("  peak RSS               {mib:>9.0} MiB");

@@ -15,7 +15,7 @@ use gagavatar_net::style_unet::Noise;
 use gagavatar_net::ModelConfig;
 use gagavatar_ops::{resize, ResizeMode};
 
-fn preset(name: &str) -> Result<ModelConfig> {
+pub fn preset(name: &str) -> Result<ModelConfig> {
     ModelConfig::preset(name).with_context(|| {
         format!(
             "unknown preset `{name}` (choose one of {})",
@@ -114,7 +114,11 @@ pub fn read_image(path: &Path, size: usize) -> Result<Tensor> {
     Ok(t)
 }
 
-/// Loads a FLAME asset with the given basis split.
+/// `--flame synthetic` names the built-in synthetic asset (`gagavatar flame synth`, seed 0): the
+/// one `synth-data`, `train` and the demo model use, so no file is needed for them.
+pub const SYNTHETIC_FLAME: &str = "synthetic";
+
+/// Loads a FLAME asset with the given basis split (or the built-in synthetic one).
 pub fn load_flame(path: &Path, n_shape: usize, n_exp: usize) -> Result<FlameModel> {
     let options = LoadOptions {
         layout: Some(BasisLayout {
@@ -122,12 +126,17 @@ pub fn load_flame(path: &Path, n_shape: usize, n_exp: usize) -> Result<FlameMode
             expression: n_exp,
         }),
     };
-    let asset = FlameAsset::load(path, &options).with_context(|| {
-        format!(
-            "loading FLAME {} as {n_shape} shape + {n_exp} expression components (--n-shape, --n-exp)",
-            path.display()
-        )
-    })?;
+    let asset = if path.as_os_str() == SYNTHETIC_FLAME && !path.exists() {
+        gagavatar_flame::synthesize(0)
+    } else {
+        FlameAsset::load(path, &options).with_context(|| {
+            format!(
+                "loading FLAME {} as {n_shape} shape + {n_exp} expression components \
+                 (--n-shape, --n-exp)",
+                path.display()
+            )
+        })?
+    };
     let config = FlameConfig {
         n_shape: asset.layout.shape,
         n_exp: asset.layout.expression,

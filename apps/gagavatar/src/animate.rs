@@ -1,0 +1,270 @@
+//! What `reenact`, `orbit` and `export-ply` share: loading the model, FLAME and the source,
+//! reconstructing the avatar once, and turning batches of (record, camera) into RGB frames with
+//! a per-stage time split.
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use candle_core::{Device, Tensor};
+use clap::Args;
+use gagavatar_flame::{FlameIdentity, FlameModel, TrackedFrame};
+use gagavatar_net::checkpoint;
+use gagavatar_net::model::{Avatar, GagAvatar};
+use gagavatar_net::style_unet::Noise;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::cmd_model::{load_flame, preset, read_image};
+
+/// The inputs every avatar command needs.
+#[derive(Debug, Args)]
+pub struct SourceArgs {
+    /// Weights: the release `GAGAvatar.pt`, or safetensors from `convert` / `init-weights`.
+    #[arg(long)]
+    pub ckpt: PathBuf,
+    /// FLAME asset (`FLAME_with_eye.pt`, or safetensors with the same keys); `synthetic` for the
+    /// built-in synthetic asset that synth-data, train and the demo model use.
+    #[arg(long)]
+    pub flame: PathBuf,
+    /// Source photo (PNG/JPEG; resized with a notice when it is not image_size square).
+    #[arg(long)]
+    pub source: PathBuf,
+    /// Source tracking: a tracked-frame JSON record, or a release `optim.pkl` (with --source-key).
+    #[arg(long)]
+    pub source_record: PathBuf,
+    /// Frame name inside a `.pkl` source record (e.g. `video_000`).
+    #[arg(long)]
+    pub source_key: Option<String>,
+    /// Architecture, when the weights file does not say (the release `.pt` is `release`).
+    #[arg(long)]
+    pub preset: Option<String>,
+    /// Shape components at the start of the FLAME asset's `shapedirs`.
+    #[arg(long, default_value_t = 300)]
+    pub n_shape: usize,
+    /// Expression components after them.
+    #[arg(long, default_value_t = 100)]
+    pub n_exp: usize,
+    /// Draw fresh renderer noise per frame (the release's behaviour) instead of the fixed buffers.
+    #[arg(long)]
+    pub fresh_noise: bool,
+}
+
+/// Wall time per stage, summed over frames.
+#[derive(Debug, Default, Clone)]
+pub struct Timings {
+    pub load: Duration,
+    pub reconstruct: Duration,
+    pub flame: Duration,
+    pub splat: Duration,
+    pub renderer: Duration,
+    pub encode: Duration,
+    pub frames: usize,
+}
+
+impl Timings {
+    /// One summary line per stage, per frame where it runs per frame.
+    pub fn report(&self, total: Duration) -> String {
+        let ms = |d: Duration| 1e3 * d.as_secs_f64();
+        let per = |d: Duration| ms(d) / self.frames.max(1) as f64;
+        format!(
+            "time: load {:.0} ms, reconstruct {:.0} ms; per frame: FLAME {:.1} ms, splatting {:.1} ms, \
+neural renderer {:.1} ms, video encoding {:.1} ms; {} frames, total wall {:.1} s ({:.2} frames/s)",
+            ms(self.load),
+            ms(self.reconstruct),
+            per(self.flame),
+            per(self.splat),
+            per(self.renderer),
+            per(self.encode),
+            self.frames,
+            total.as_secs_f64(),
+            self.frames as f64 / total.as_secs_f64().max(1e-9),
+        )
+    }
+}
+
+/// A reconstructed avatar, ready to be driven.
+pub struct Session {
+    pub model: GagAvatar,
+    pub flame: FlameModel,
+    pub source: TrackedFrame,
+    pub avatar: Avatar,
+    identity: FlameIdentity,
+    pub noise: Noise,
+    pub timings: Timings,
+}
+
+/// Reads the source record: JSON, or a frame of a release pickle.
+pub fn read_source_record(path: &Path, key: Option<&str>) -> Result<TrackedFrame> {
+    // The data crate's errors already name the file and field.
+    Ok(gagavatar_data::read_source_record(path, key)?)
+}
+
+/// The 3x4 transform of a record as `[3, 4]` f32 values, or an error naming the record.
+pub fn record_transform(record: &TrackedFrame, what: &str) -> Result<[[f64; 4]; 3]> {
+    record
+        .transform_matrix
+        .with_context(|| format!("{what} has no transform_matrix"))
+}
+
+pub fn transforms_tensor(tms: &[[[f64; 4]; 3]]) -> Result<Tensor> {
+    let flat: Vec<f32> = tms
+        .iter()
+        .flat_map(|m| m.iter().flatten().map(|&x| x as f32))
+        .collect();
+    Ok(Tensor::from_vec(flat, (tms.len(), 3, 4), &Device::Cpu)?)
+}
+
+impl Session {
+    pub fn open(a: &SourceArgs) -> Result<Self> {
+        let t0 = Instant::now();
+        let explicit = a.preset.as_deref().map(preset).transpose()?;
+        let source = read_source_record(&a.source_record, a.source_key.as_deref())?;
+        let source_tm = record_transform(&source, "the source record")?;
+        let model = checkpoint::load_model(&a.ckpt, explicit.as_ref(), &Device::Cpu)
+            .with_context(|| format!("loading {}", a.ckpt.display()))?;
+        let flame = load_flame(&a.flame, a.n_shape, a.n_exp)?;
+        if flame.n_vertices != model.cfg.n_vertices {
+            bail!(
+                "FLAME asset {} has {} vertices, the model expects {}",
+                a.flame.display(),
+                flame.n_vertices,
+                model.cfg.n_vertices
+            );
+        }
+        let image = read_image(&a.source, model.cfg.image_size)?;
+        let shape = source
+            .params(&flame)
+            .with_context(|| format!("source record {}", a.source_record.display()))?
+            .shape;
+        let identity = flame.identity(&shape)?;
+        let source_transform = transforms_tensor(&[source_tm])?;
+        let load = t0.elapsed();
+        let t1 = Instant::now();
+        let avatar = model.reconstruct(&image, &source_transform)?;
+        let reconstruct = t1.elapsed();
+        Ok(Self {
+            model,
+            flame,
+            source,
+
+            avatar,
+            identity,
+            noise: if a.fresh_noise {
+                Noise::Fresh
+            } else {
+                Noise::Fixed
+            },
+            timings: Timings {
+                load,
+                reconstruct,
+                ..Default::default()
+            },
+        })
+    }
+
+    pub fn image_size(&self) -> usize {
+        self.model.cfg.image_size
+    }
+
+    /// FLAME vertices `[B, V, 3]` with the source's identity and each record's expression, jaw
+    /// and eyes (spec section 10).
+    pub fn vertices(&mut self, records: &[&TrackedFrame], names: &[String]) -> Result<Tensor> {
+        let t0 = Instant::now();
+        let mut exp = Vec::with_capacity(records.len());
+        let mut pose = Vec::with_capacity(records.len());
+        let mut eye = Vec::with_capacity(records.len());
+        for (r, name) in records.iter().zip(names) {
+            let p = r
+                .params(&self.flame)
+                .with_context(|| format!("driver frame `{name}`"))?;
+            exp.push(p.expression);
+            pose.push(p.pose);
+            eye.push(p.eye);
+        }
+        let out = self.flame.forward_with_identity(
+            &self.identity,
+            &Tensor::cat(&exp, 0)?,
+            &Tensor::cat(&pose, 0)?,
+            &Tensor::cat(&eye, 0)?,
+        )?;
+        self.timings.flame += t0.elapsed();
+        Ok(out.vertices)
+    }
+
+    /// Renders a batch: FLAME, splatting and the neural renderer; RGB u8 frames (HWC).
+    pub fn render(
+        &mut self,
+        records: &[&TrackedFrame],
+        names: &[String],
+        transforms: &[[[f64; 4]; 3]],
+    ) -> Result<Vec<Vec<u8>>> {
+        let verts = self.vertices(records, names)?;
+        let tm = transforms_tensor(transforms)?;
+        let t0 = Instant::now();
+        let coarse = self.model.splat_coarse(&self.avatar, &verts, &tm)?;
+        let t1 = Instant::now();
+        self.timings.splat += t1 - t0;
+        let fine = self.model.render(&coarse, self.noise)?;
+        self.timings.renderer += t1.elapsed();
+        self.timings.frames += records.len();
+        to_rgb8(&fine)
+    }
+}
+
+/// `[B, 3, H, W]` in [0, 1] -> B interleaved RGB u8 frames.
+pub fn to_rgb8(images: &Tensor) -> Result<Vec<Vec<u8>>> {
+    let (b, c, h, w) = images.dims4()?;
+    if c != 3 {
+        bail!("expected RGB images, got {c} channels");
+    }
+    let data: Vec<f32> = images
+        .to_dtype(candle_core::DType::F32)?
+        .flatten_all()?
+        .to_vec1()?;
+    let plane = h * w;
+    Ok((0..b)
+        .map(|i| {
+            let img = &data[i * 3 * plane..(i + 1) * 3 * plane];
+            let mut out = vec![0u8; 3 * plane];
+            for p in 0..plane {
+                for ch in 0..3 {
+                    let v = img[ch * plane + p];
+                    // NaN maps to 0 (`as` saturates), so a broken frame is visible, not fatal.
+                    out[3 * p + ch] = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+                }
+            }
+            out
+        })
+        .collect())
+}
+
+/// Places `left` (resized to `h` x `w`) and `right` side by side.
+pub fn side_by_side(left: &image::RgbImage, right: &[u8], w: usize, h: usize) -> Vec<u8> {
+    let left = if left.width() as usize != w || left.height() as usize != h {
+        image::imageops::resize(
+            left,
+            w as u32,
+            h as u32,
+            image::imageops::FilterType::Triangle,
+        )
+    } else {
+        left.clone()
+    };
+    let mut out = vec![0u8; 2 * w * h * 3];
+    for y in 0..h {
+        let row = &mut out[y * 2 * w * 3..(y + 1) * 2 * w * 3];
+        row[..w * 3].copy_from_slice(&left.as_raw()[y * w * 3..(y + 1) * w * 3]);
+        row[w * 3..].copy_from_slice(&right[y * w * 3..(y + 1) * w * 3]);
+    }
+    out
+}
+
+pub fn progress(len: usize, what: &str) -> ProgressBar {
+    let bar = ProgressBar::new(len as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} frames, {per_sec}, ETA {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar.set_message(what.to_string());
+    bar
+}

@@ -1,0 +1,251 @@
+//! `gagavatar orbit`: novel views around the reconstructed head (the view control the release
+//! left commented out) and `gagavatar export-ply`: the avatar as a 3DGS `.ply`.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use gagavatar_flame::TrackedFrame;
+use gagavatar_splat::{Camera, GaussianScene};
+use gagavatar_video::{VideoOptions, VideoWriter};
+
+use crate::animate::{progress, read_source_record, record_transform, Session, SourceArgs};
+
+#[derive(Debug, Args)]
+#[command(
+    after_help = "The camera starts at the source view and circles the head on a \
+figure-eight: yaw = Y sin(2 pi t), pitch = P sin(4 pi t), rotating about the head's centre. \
+The expression is the source's own unless --expression gives a record. The output format \
+follows the extension: .mp4 (H.264), .gif, or anything else = a folder of PNGs.\n\n\
+Example:\n  gagavatar orbit --ckpt GAGAvatar.pt --flame FLAME_with_eye.pt --source me.png \\\n    \
+--source-record me.json --yaw 35 --pitch 12 --frames 90 -o orbit.mp4"
+)]
+pub struct OrbitArgs {
+    #[command(flatten)]
+    pub src: SourceArgs,
+    /// Output: .mp4, .gif, or a folder of PNGs.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Expression, jaw and eyes from this record (JSON, or a `.pkl` with --expression-key).
+    #[arg(long)]
+    pub expression: Option<PathBuf>,
+    /// Frame name inside a `.pkl` expression record.
+    #[arg(long)]
+    pub expression_key: Option<String>,
+    /// Largest yaw, degrees.
+    #[arg(long, default_value_t = 30.0)]
+    pub yaw: f64,
+    /// Largest pitch, degrees.
+    #[arg(long, default_value_t = 10.0)]
+    pub pitch: f64,
+    /// Number of frames in the loop.
+    #[arg(long, default_value_t = 60)]
+    pub frames: usize,
+    /// Frames per second of the output.
+    #[arg(long, default_value_t = 25.0)]
+    pub fps: f64,
+    /// Frames rendered together (more uses more memory).
+    #[arg(long, default_value_t = 1)]
+    pub batch: usize,
+    /// Do not draw the "AI-generated" watermark.
+    #[arg(long)]
+    pub no_watermark: bool,
+}
+
+/// The source camera with the world (head) rotated about the origin, where tracked data puts
+/// the head: by `yaw` about Y, then `pitch` about X, as in `Camera::look_at_origin_matrix`.
+pub fn orbit_transform(base: &[[f64; 4]; 3], yaw: f64, pitch: f64) -> [[f64; 4]; 3] {
+    // A transform [R | T] maps p to R^T p + T; rotating the world by O first gives R^T O p,
+    // i.e. R' = O^T R. The look-at matrix of distance 0 stores exactly O^T in its 3x3 block.
+    let ot = Camera::look_at_origin_matrix(0.0, yaw, pitch);
+    let mut out = *base;
+    for i in 0..3 {
+        for j in 0..3 {
+            out[i][j] = (0..3).map(|k| ot[i][k] * base[k][j]).sum();
+        }
+    }
+    out
+}
+
+fn expression_record(
+    session_source: &TrackedFrame,
+    path: Option<&PathBuf>,
+    key: Option<&str>,
+) -> Result<TrackedFrame> {
+    match path {
+        Some(p) => read_source_record(p, key),
+        None => Ok(session_source.clone()),
+    }
+}
+
+pub fn run_orbit(a: OrbitArgs) -> Result<()> {
+    let start_time = Instant::now();
+    if a.frames == 0 || a.batch == 0 {
+        bail!("--frames and --batch must be at least 1");
+    }
+    if !a.yaw.is_finite() || !a.pitch.is_finite() || a.yaw.abs() > 90.0 || a.pitch.abs() > 90.0 {
+        bail!("--yaw and --pitch must be finite angles within +-90 degrees");
+    }
+    let mut session = Session::open(&a.src)?;
+    let expr = expression_record(
+        &session.source,
+        a.expression.as_ref(),
+        a.expression_key.as_deref(),
+    )?;
+    let base = record_transform(&session.source, "the source record")?;
+    let transforms: Vec<_> = (0..a.frames)
+        .map(|i| {
+            let t = i as f64 / a.frames as f64;
+            let tau = std::f64::consts::TAU;
+            orbit_transform(
+                &base,
+                a.yaw.to_radians() * (tau * t).sin(),
+                a.pitch.to_radians() * (2.0 * tau * t).sin(),
+            )
+        })
+        .collect();
+    let size = session.image_size();
+    let mut writer = VideoWriter::create(
+        &a.output,
+        size,
+        size,
+        VideoOptions {
+            fps: a.fps,
+            watermark: !a.no_watermark,
+        },
+    )
+    .with_context(|| format!("creating {}", a.output.display()))?;
+    let bar = progress(a.frames, "orbit");
+    let mut i = 0;
+    while i < a.frames {
+        crate::check_interrupt()?;
+        let j = (i + a.batch).min(a.frames);
+        let records = vec![&expr; j - i];
+        let names: Vec<String> = (i..j).map(|k| format!("orbit view {k}")).collect();
+        for img in session.render(&records, &names, &transforms[i..j])? {
+            let t0 = Instant::now();
+            writer.push_rgb(&img)?;
+            session.timings.encode += t0.elapsed();
+            bar.inc(1);
+        }
+        i = j;
+    }
+    let t0 = Instant::now();
+    writer.finish()?;
+    session.timings.encode += t0.elapsed();
+    bar.finish_and_clear();
+    eprintln!(
+        "wrote {} ({} frames, {size}x{size}, {} fps)",
+        a.output.display(),
+        a.frames,
+        a.fps
+    );
+    eprintln!("{}", session.timings.report(start_time.elapsed()));
+    Ok(())
+}
+
+#[derive(Debug, Args)]
+#[command(
+    after_help = "Writes every Gaussian of the avatar (FLAME-vertex Gaussians posed with \
+the chosen expression, then both lifted planes) as a binary little-endian 3DGS .ply: x, y, z, \
+f_dc_0..2 (from the RGB channels), opacity (logit), scale_0..2 (log), rot_0..3 (unit \
+quaternion), plus the raw feature channels feat_0..feat_31. The release's unnormalised \
+quaternions are converted to an exactly equivalent unit quaternion and scales, so viewers that \
+normalise quaternions show the same covariances. `gagavatar splat --scene a.ply` reads it back.\n\n\
+Example:\n  gagavatar export-ply --ckpt GAGAvatar.pt --flame FLAME_with_eye.pt --source me.png \\\n    \
+--source-record me.json -o me.ply"
+)]
+pub struct ExportPlyArgs {
+    #[command(flatten)]
+    pub src: SourceArgs,
+    /// Output .ply.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Expression, jaw and eyes from this record (JSON, or a `.pkl` with --expression-key);
+    /// default: the source's own.
+    #[arg(long)]
+    pub expression: Option<PathBuf>,
+    /// Frame name inside a `.pkl` expression record.
+    #[arg(long)]
+    pub expression_key: Option<String>,
+}
+
+pub fn run_export_ply(a: ExportPlyArgs) -> Result<()> {
+    let mut session = Session::open(&a.src)?;
+    let expr = expression_record(
+        &session.source,
+        a.expression.as_ref(),
+        a.expression_key.as_deref(),
+    )?;
+    let verts = session.vertices(&[&expr], &["expression".to_string()])?;
+    let av = &session.avatar;
+    let flat = |t: &candle_core::Tensor| -> Result<Vec<f32>> {
+        Ok(t.to_dtype(candle_core::DType::F32)?
+            .flatten_all()?
+            .to_vec1()?)
+    };
+    let channels = av.colors.dim(2)?;
+    let raw = GaussianScene {
+        means: flat(&av.positions(&verts)?)?,
+        features: flat(&av.colors)?,
+        channels,
+        opacities: flat(&av.opacities)?,
+        scales: flat(&av.scales)?,
+        rotations: flat(&av.rotations)?,
+    };
+    let scene = raw.with_unit_quaternions();
+    scene
+        .save_ply(&a.output)
+        .with_context(|| format!("writing {}", a.output.display()))?;
+    eprintln!(
+        "wrote {} ({} Gaussians, {channels} feature channels)",
+        a.output.display(),
+        scene.len()
+    );
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn orbit_of_zero_angles_is_the_base_and_keeps_the_distance() {
+        let base = Camera::look_at_origin_matrix(9.0, 0.2, -0.1);
+        let same = orbit_transform(&base, 0.0, 0.0);
+        assert_eq!(same, base);
+        // The camera centre stays at the same distance from the head for any orbit angle.
+        let dist = |tm: &[[f64; 4]; 3]| {
+            let c = Camera::from_transform_matrix(tm, 12.0, 64, 64)
+                .unwrap()
+                .center();
+            (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt()
+        };
+        let moved = orbit_transform(&base, 0.5, 0.3);
+        assert!((dist(&moved) - dist(&base)).abs() < 1e-9);
+        assert!(moved != base);
+    }
+
+    #[test]
+    fn orbit_matches_look_at_from_the_front() {
+        // From the look-at camera with R = I (it faces the back of the head; the release's
+        // frontal camera is yaw = pi), orbiting by (yaw, pitch) about the head is the look-at
+        // camera with the same angles.
+        let front = Camera::look_at_origin_matrix(9.0, 0.0, 0.0);
+        for (yaw, pitch) in [(0.4, 0.0), (0.0, 0.3), (-0.5, 0.2)] {
+            let want = Camera::look_at_origin_matrix(9.0, yaw, pitch);
+            let got = orbit_transform(&front, yaw, pitch);
+            for i in 0..3 {
+                for j in 0..4 {
+                    assert!(
+                        (got[i][j] - want[i][j]).abs() < 1e-12,
+                        "({yaw}, {pitch}) [{i}][{j}] expected {} got {}",
+                        want[i][j],
+                        got[i][j]
+                    );
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,141 @@
+//! `gagavatar reenact`: one photo + a driving sequence -> a video.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use gagavatar_data::DriverSequence;
+use gagavatar_video::{VideoOptions, VideoWriter};
+
+use crate::animate::{progress, record_transform, side_by_side, Session, SourceArgs};
+
+#[derive(Debug, Args)]
+#[command(
+    after_help = "The avatar is reconstructed once from the source; every driver frame \
+uses the source's shape code with the driver's expression, jaw, eye pose and camera.\n\n\
+The driver is a release tracked folder (smoothed.pkl or optim.pkl, optional img_lmdb/ with the \
+driver frames) or a JSON file {\"fps\": 25, \"frames\": [record, ...]}. The output format \
+follows the extension: .mp4 (H.264), .gif, or anything else = a folder of PNGs.\n\n\
+Example:\n  gagavatar reenact --ckpt GAGAvatar.pt --flame FLAME_with_eye.pt --source me.png \\\n    \
+--source-record me.json --driver tracked/video1 --side-by-side -o out.mp4"
+)]
+pub struct ReenactArgs {
+    #[command(flatten)]
+    pub src: SourceArgs,
+    /// Driving sequence: a release tracked folder or a JSON sequence.
+    #[arg(long)]
+    pub driver: PathBuf,
+    /// Output: .mp4, .gif, or a folder of PNGs.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Put the driver frame left of the result (needs driver images).
+    #[arg(long)]
+    pub side_by_side: bool,
+    /// Frames per second of the output (default: the driver's, else 25).
+    #[arg(long)]
+    pub fps: Option<f64>,
+    /// First driver frame to render.
+    #[arg(long, default_value_t = 0)]
+    pub start: usize,
+    /// Render at most this many frames.
+    #[arg(long)]
+    pub max_frames: Option<usize>,
+    /// Frames rendered together (more uses more memory).
+    #[arg(long, default_value_t = 1)]
+    pub batch: usize,
+    /// Do not draw the "AI-generated" watermark.
+    #[arg(long)]
+    pub no_watermark: bool,
+}
+
+pub fn run(a: ReenactArgs) -> Result<()> {
+    let start_time = Instant::now();
+    if a.batch == 0 {
+        bail!("--batch must be at least 1");
+    }
+    // The data crate's errors already name the file, frame and field.
+    let driver = DriverSequence::open(&a.driver)?;
+    let total = driver.frames.len();
+    if a.start >= total {
+        bail!(
+            "--start {} is past the end of the driver ({} frames in {})",
+            a.start,
+            total,
+            a.driver.display()
+        );
+    }
+    let end = a.max_frames.map_or(total, |m| (a.start + m).min(total));
+    if end == a.start {
+        bail!("--max-frames 0 leaves nothing to render");
+    }
+    if a.side_by_side && !driver.has_images() {
+        bail!(
+            "--side-by-side needs driver images, and {} has none",
+            a.driver.display()
+        );
+    }
+    // Check every frame's camera before the slow part, so a bad frame fails in a second.
+    let mut transforms = Vec::with_capacity(end - a.start);
+    for f in &driver.frames[a.start..end] {
+        transforms.push(record_transform(
+            &f.record,
+            &format!("driver frame `{}` in {}", f.name, a.driver.display()),
+        )?);
+    }
+    let fps = a.fps.unwrap_or(driver.fps);
+    let mut session = Session::open(&a.src)?;
+    let size = session.image_size();
+    let width = if a.side_by_side { 2 * size } else { size };
+    let mut writer = VideoWriter::create(
+        &a.output,
+        width,
+        size,
+        VideoOptions {
+            fps,
+            watermark: !a.no_watermark,
+        },
+    )
+    .with_context(|| format!("creating {}", a.output.display()))?;
+    let bar = progress(end - a.start, "reenact");
+    let mut i = a.start;
+    while i < end {
+        crate::check_interrupt()?;
+        let j = (i + a.batch).min(end);
+        let frames = &driver.frames[i..j];
+        let records: Vec<_> = frames.iter().map(|f| &f.record).collect();
+        let names: Vec<String> = frames
+            .iter()
+            .map(|f| format!("{} of {}", f.name, a.driver.display()))
+            .collect();
+        let images = session.render(&records, &names, &transforms[i - a.start..j - a.start])?;
+        for (k, img) in images.into_iter().enumerate() {
+            let frame = if a.side_by_side {
+                let name = &driver.frames[i + k].name;
+                let left = driver
+                    .image(i + k)
+                    .with_context(|| format!("reading the image of driver frame `{name}`"))?
+                    .with_context(|| format!("driver frame `{name}` has no image"))?;
+                side_by_side(&left, &img, size, size)
+            } else {
+                img
+            };
+            let t0 = Instant::now();
+            writer.push_rgb(&frame)?;
+            session.timings.encode += t0.elapsed();
+            bar.inc(1);
+        }
+        i = j;
+    }
+    let t0 = Instant::now();
+    writer.finish()?;
+    session.timings.encode += t0.elapsed();
+    bar.finish_and_clear();
+    eprintln!(
+        "wrote {} ({} frames, {width}x{size}, {fps} fps)",
+        a.output.display(),
+        end - a.start
+    );
+    eprintln!("{}", session.timings.report(start_time.elapsed()));
+    Ok(())
+}

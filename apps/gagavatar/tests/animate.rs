@@ -1,0 +1,541 @@
+//! End to end: `reenact`, `orbit` and `export-ply` on seeded `tiny` weights and the synthetic
+//! FLAME asset, plus every bad-input case of the issue (one clear error line, non-zero exit, no
+//! output or temp file left behind).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::OnceLock;
+
+use gagavatar_splat::scene::covariance;
+use gagavatar_splat::GaussianScene;
+
+const BIN: &str = env!("CARGO_BIN_EXE_gagavatar");
+/// The tiny preset renders 64x64 frames.
+const SIZE: usize = 64;
+/// Opacities go through a logit and back in f32: a few ulps of 1.
+const OPACITY_TOL: f64 = 1e-5;
+/// Covariances from the unit-quaternion form, relative to the largest entry: f32 storage.
+const COV_REL_TOL: f64 = 1e-4;
+
+struct Fixture {
+    dir: PathBuf,
+}
+
+impl Fixture {
+    fn path(&self, name: &str) -> PathBuf {
+        self.dir.join(name)
+    }
+    fn s(&self, name: &str) -> String {
+        self.path(name).display().to_string()
+    }
+}
+
+fn run(args: &[&str]) -> Output {
+    Command::new(BIN)
+        .args(args)
+        .output()
+        .expect("running the gagavatar binary")
+}
+
+fn ok(args: &[&str]) -> Output {
+    let out = run(args);
+    assert!(
+        out.status.success(),
+        "gagavatar {args:?} failed:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+fn record(exp: f64, yaw: f64) -> serde_json::Value {
+    let (s, c) = yaw.sin_cos();
+    serde_json::json!({
+        "shapecode": [0.2, -0.1, 0.3],
+        "expcode": (0..10).map(|k| exp * ((k as f64) + 1.0).sin()).collect::<Vec<_>>(),
+        "posecode": [0, 0, 0, 0.05, 0, 0],
+        "eyecode": [0, 0, 0, 0, 0, 0],
+        "transform_matrix": [[-c, 0.0, s, 0.0], [0.0, 1.0, 0.0, 0.0], [-s, 0.0, -c, 9.0]],
+    })
+}
+
+fn fixture() -> &'static Fixture {
+    static F: OnceLock<Fixture> = OnceLock::new();
+    F.get_or_init(|| {
+        let dir = std::env::temp_dir().join(format!("gagavatar_animate_{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let f = Fixture { dir };
+        ok(&["flame", "synth", "-o", &f.s("flame.safetensors")]);
+        ok(&[
+            "init-weights",
+            "--preset",
+            "tiny",
+            "--seed",
+            "4",
+            "-o",
+            &f.s("tiny.safetensors"),
+        ]);
+        let img = image::RgbImage::from_fn(SIZE as u32, SIZE as u32, |x, y| {
+            image::Rgb([(x * 4) as u8, (y * 4) as u8, ((x + y) * 2) as u8])
+        });
+        img.save(f.path("src.png")).unwrap();
+        let big = image::RgbImage::from_fn(100, 80, |x, y| image::Rgb([x as u8, y as u8, 7]));
+        big.save(f.path("src_100x80.png")).unwrap();
+        std::fs::write(f.path("src.json"), record(0.0, 0.0).to_string()).unwrap();
+        std::fs::write(f.path("expr.json"), record(0.8, 0.0).to_string()).unwrap();
+        let frames: Vec<_> = (0..5)
+            .map(|i| record(0.4 * i as f64, 0.1 * i as f64))
+            .collect();
+        std::fs::write(
+            f.path("driver.json"),
+            serde_json::json!({"fps": 10, "frames": frames}).to_string(),
+        )
+        .unwrap();
+        f
+    })
+}
+
+/// `gagavatar <sub> <source args> <extra>`.
+fn avatar_cmd(f: &Fixture, sub: &str, extra: &[&str]) -> Vec<String> {
+    let mut v = vec![sub.to_string()];
+    for (k, name) in [
+        ("--ckpt", "tiny.safetensors"),
+        ("--flame", "flame.safetensors"),
+        ("--source", "src.png"),
+        ("--source-record", "src.json"),
+    ] {
+        v.push(k.into());
+        v.push(f.s(name));
+    }
+    v.extend(extra.iter().map(|s| s.to_string()));
+    v
+}
+
+fn strs(v: &[String]) -> Vec<&str> {
+    v.iter().map(String::as_str).collect()
+}
+
+fn release_small() -> String {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../crates/data/tests/data/release_small")
+        .display()
+        .to_string()
+}
+
+/// Names in `dir` (to prove a failed command left nothing behind, temp files included).
+fn listing(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn reenact_json_driver_writes_a_decodable_mp4() {
+    let f = fixture();
+    let out = f.s("reenact.mp4");
+    let args = avatar_cmd(f, "reenact", &["--driver", &f.s("driver.json"), "-o", &out]);
+    let res = ok(&strs(&args));
+    let log = String::from_utf8_lossy(&res.stderr);
+    for stage in [
+        "FLAME",
+        "splatting",
+        "neural renderer",
+        "video encoding",
+        "total wall",
+    ] {
+        assert!(log.contains(stage), "time split lacks `{stage}`:\n{log}");
+    }
+    let info = gagavatar_video::mp4::read_mp4_info(Path::new(&out)).unwrap();
+    assert_eq!((info.frames, info.width, info.height), (5, SIZE, SIZE));
+    assert!((info.fps - 10.0).abs() < 1e-9, "fps {}", info.fps);
+    let frames = gagavatar_video::mp4::decode_mp4(Path::new(&out)).unwrap();
+    assert_eq!(frames.len(), 5);
+    assert!(frames.iter().all(|fr| fr.len() == SIZE * SIZE * 3));
+    // Different expressions and cameras give different frames.
+    assert_ne!(frames[0], frames[4]);
+}
+
+#[test]
+fn reenact_release_folder_side_by_side_range_batch_and_png_output() {
+    let f = fixture();
+    let out = f.s("sbs.mp4");
+    let driver = release_small();
+    let args = avatar_cmd(
+        f,
+        "reenact",
+        &[
+            "--driver",
+            &driver,
+            "--side-by-side",
+            "--start",
+            "1",
+            "--max-frames",
+            "4",
+            "--batch",
+            "3",
+            "--fps",
+            "12.5",
+            "-o",
+            &out,
+        ],
+    );
+    ok(&strs(&args));
+    let info = gagavatar_video::mp4::read_mp4_info(Path::new(&out)).unwrap();
+    assert_eq!((info.frames, info.width, info.height), (4, 2 * SIZE, SIZE));
+    assert!((info.fps - 12.5).abs() < 1e-9);
+
+    // The same frames one at a time into PNGs, without the watermark: batching must not change
+    // a pixel (the fixed noise buffers make each frame deterministic).
+    let dir_b1 = f.s("pngs_b1/");
+    let dir_b3 = f.s("pngs_b3/");
+    for (dir, batch) in [(&dir_b1, "1"), (&dir_b3, "3")] {
+        let args = avatar_cmd(
+            f,
+            "reenact",
+            &[
+                "--driver",
+                &driver,
+                "--max-frames",
+                "3",
+                "--batch",
+                batch,
+                "--no-watermark",
+                "-o",
+                dir,
+            ],
+        );
+        ok(&strs(&args));
+    }
+    for k in 0..3 {
+        let name = format!("frame_{k:05}.png");
+        let a = image::open(Path::new(&dir_b1).join(&name))
+            .unwrap()
+            .to_rgb8();
+        let b = image::open(Path::new(&dir_b3).join(&name))
+            .unwrap()
+            .to_rgb8();
+        assert_eq!(a.dimensions(), (SIZE as u32, SIZE as u32));
+        let worst = a
+            .as_raw()
+            .iter()
+            .zip(b.as_raw())
+            .map(|(x, y)| (*x as i32 - *y as i32).abs())
+            .max()
+            .unwrap();
+        // Batched GEMMs may sum in another order: at most one level of 8-bit rounding.
+        assert!(
+            worst <= 1,
+            "frame {k}: batch 1 vs 3 differ by {worst} levels"
+        );
+    }
+    assert_eq!(listing(Path::new(&dir_b1)).len(), 3);
+}
+
+#[test]
+fn orbit_writes_gif_and_png_frames() {
+    let f = fixture();
+    let gif_path = f.s("orbit.gif");
+    let args = avatar_cmd(
+        f,
+        "orbit",
+        &["--frames", "6", "--yaw", "25", "-o", &gif_path],
+    );
+    ok(&strs(&args));
+    let file = std::fs::File::open(&gif_path).unwrap();
+    let mut opts = gif::DecodeOptions::new();
+    opts.set_color_output(gif::ColorOutput::RGBA);
+    let mut dec = opts.read_info(file).unwrap();
+    assert_eq!((dec.width() as usize, dec.height() as usize), (SIZE, SIZE));
+    let mut n = 0;
+    while dec.read_next_frame().unwrap().is_some() {
+        n += 1;
+    }
+    assert_eq!(n, 6);
+
+    let dir = f.s("orbit_pngs");
+    let args = avatar_cmd(
+        f,
+        "orbit",
+        &[
+            "--frames",
+            "4",
+            "--expression",
+            &f.s("expr.json"),
+            "--no-watermark",
+            "-o",
+            &dir,
+        ],
+    );
+    ok(&strs(&args));
+    let names = listing(Path::new(&dir));
+    assert_eq!(
+        names,
+        [
+            "frame_00000.png",
+            "frame_00001.png",
+            "frame_00002.png",
+            "frame_00003.png"
+        ]
+    );
+    let a = image::open(Path::new(&dir).join(&names[0]))
+        .unwrap()
+        .to_rgb8();
+    let b = image::open(Path::new(&dir).join(&names[1]))
+        .unwrap()
+        .to_rgb8();
+    assert_ne!(a, b, "the camera moved, the frames must differ");
+}
+
+#[test]
+fn export_ply_holds_the_dumped_gaussians() {
+    let f = fixture();
+    let ply = f.s("avatar.ply");
+    let args = avatar_cmd(
+        f,
+        "export-ply",
+        &["--expression", &f.s("expr.json"), "-o", &ply],
+    );
+    ok(&strs(&args));
+    let dump = f.s("dump.safetensors");
+    ok(&[
+        "dump",
+        "--ckpt",
+        &f.s("tiny.safetensors"),
+        "--flame",
+        &f.s("flame.safetensors"),
+        "--source",
+        &f.s("src.png"),
+        "--source-record",
+        &f.s("src.json"),
+        "--target-record",
+        &f.s("expr.json"),
+        "-o",
+        &dump,
+    ]);
+    let scene = GaussianScene::load(Path::new(&ply)).unwrap();
+    let t = candle_core::safetensors::load(&dump, &candle_core::Device::Cpu).unwrap();
+    let get = |k: &str| -> Vec<f32> { t[k].flatten_all().unwrap().to_vec1().unwrap() };
+    let (xyz, col, op, sc, rot) = (
+        get("gs_xyz"),
+        get("gs_colors"),
+        get("gs_opacities"),
+        get("gs_scales"),
+        get("gs_rotations"),
+    );
+    let n = op.len();
+    assert_eq!(scene.len(), n);
+    assert_eq!(scene.channels, 32);
+    assert_eq!(scene.means, xyz, "positions");
+    assert_eq!(scene.features, col, "features");
+    for i in 0..n {
+        let (a, b) = (op[i] as f64, scene.opacities[i] as f64);
+        assert!(
+            (a - b).abs() <= OPACITY_TOL,
+            "opacity {i}: expected {a} got {b}"
+        );
+        let q = |v: &[f32]| -> [f64; 4] { std::array::from_fn(|k| v[4 * i + k] as f64) };
+        let s = |v: &[f32]| -> [f64; 3] { std::array::from_fn(|k| v[3 * i + k] as f64) };
+        let want = covariance(q(&rot), s(&sc));
+        let got = covariance(q(&scene.rotations), s(&scene.scales));
+        let unit: f64 = q(&scene.rotations)
+            .iter()
+            .map(|x| x * x)
+            .sum::<f64>()
+            .sqrt();
+        assert!((unit - 1.0).abs() < 1e-5, "rotation {i} not unit: {unit}");
+        let big = want.iter().flatten().fold(1e-30f64, |m, x| m.max(x.abs()));
+        for r in 0..3 {
+            for c in 0..3 {
+                assert!(
+                    (want[r][c] - got[r][c]).abs() <= COV_REL_TOL * big,
+                    "covariance {i} [{r}][{c}]: expected {} got {}",
+                    want[r][c],
+                    got[r][c]
+                );
+            }
+        }
+    }
+    // And the splat command reads it back.
+    let cam = f.path("cam.json");
+    std::fs::write(
+        &cam,
+        r#"{"transform_matrix": [[-1,0,0,0],[0,1,0,0],[0,0,-1,9]], "width": 64, "height": 64}"#,
+    )
+    .unwrap();
+    ok(&[
+        "splat",
+        "--scene",
+        &ply,
+        "--camera",
+        &cam.display().to_string(),
+        "-o",
+        &f.s("ply.png"),
+    ]);
+}
+
+#[test]
+fn wrong_image_size_is_resized_with_a_notice_and_fresh_noise_runs() {
+    let f = fixture();
+    let mut args = avatar_cmd(
+        f,
+        "orbit",
+        &["--frames", "2", "--fresh-noise", "-o", &f.s("resized.gif")],
+    );
+    let i = args.iter().position(|a| a == "--source").unwrap();
+    args[i + 1] = f.s("src_100x80.png");
+    let res = ok(&strs(&args));
+    let log = String::from_utf8_lossy(&res.stderr);
+    assert!(log.contains("resizing"), "no resize notice:\n{log}");
+}
+
+/// Runs a command that must fail: non-zero exit, an `error:` line naming `needle`, no panic, and
+/// nothing new in the output directory.
+fn fails(args: &[String], out_dir: &Path, needle: &str) {
+    let before = listing(out_dir);
+    let res = run(&strs(args));
+    let log = String::from_utf8_lossy(&res.stderr);
+    assert!(!res.status.success(), "{args:?} succeeded");
+    assert!(!log.contains("panicked"), "{args:?} panicked:\n{log}");
+    let last = log.lines().last().unwrap_or("");
+    assert!(
+        last.starts_with("error: "),
+        "{args:?}: last line is not an error:\n{log}"
+    );
+    assert!(
+        last.contains(needle),
+        "{args:?}: error does not mention `{needle}`:\n{log}"
+    );
+    assert_eq!(listing(out_dir), before, "{args:?} left files behind");
+}
+
+#[test]
+fn bad_inputs_fail_cleanly() {
+    let f = fixture();
+    let bad = f.path("bad");
+    std::fs::create_dir_all(&bad).unwrap();
+    let b = |name: &str| bad.join(name).display().to_string();
+    let out = b("out.mp4");
+    let driver = f.s("driver.json");
+
+    // Corrupt and wrong files.
+    std::fs::write(bad.join("garbage.safetensors"), b"not a checkpoint").unwrap();
+    std::fs::write(bad.join("garbage.png"), b"\x89PNG but not really").unwrap();
+    std::fs::write(bad.join("garbage.json"), b"{\"fps\": 25, \"frames\": [").unwrap();
+    let frames = |edit: &dyn Fn(&mut serde_json::Value)| {
+        let mut frames: Vec<_> = (0..3).map(|i| record(0.1 * i as f64, 0.0)).collect();
+        edit(&mut frames[2]);
+        serde_json::json!({"fps": 25, "frames": frames}).to_string()
+    };
+    std::fs::write(
+        bad.join("missing_field.json"),
+        frames(&|r| {
+            r.as_object_mut().unwrap().remove("expcode");
+        }),
+    )
+    .unwrap();
+    std::fs::write(
+        bad.join("misshapen.json"),
+        frames(&|r| r["expcode"] = serde_json::json!(vec![0.1; 150])),
+    )
+    .unwrap();
+    std::fs::write(
+        bad.join("no_camera.json"),
+        frames(&|r| {
+            r.as_object_mut().unwrap().remove("transform_matrix");
+        }),
+    )
+    .unwrap();
+    std::fs::write(
+        bad.join("nan.json"),
+        frames(&|r| r["posecode"] = serde_json::json!([0, 0, 0, "NaN", 0, 0])),
+    )
+    .unwrap();
+
+    let set = |args: &mut Vec<String>, flag: &str, value: String| {
+        let i = args.iter().position(|a| a == flag).unwrap();
+        args[i + 1] = value;
+    };
+    let reenact = |driver: &str| avatar_cmd(f, "reenact", &["--driver", driver, "-o", &out]);
+
+    let mut a = reenact(&driver);
+    set(&mut a, "--ckpt", b("missing.safetensors"));
+    fails(&a, &bad, "missing.safetensors");
+
+    let mut a = reenact(&driver);
+    set(&mut a, "--ckpt", b("garbage.safetensors"));
+    fails(&a, &bad, "garbage.safetensors");
+
+    // Tiny weights read as the small architecture: wrong keys and shapes.
+    let mut a = reenact(&driver);
+    a.extend(["--preset".to_string(), "small".to_string()]);
+    fails(&a, &bad, "tiny.safetensors");
+
+    let mut a = reenact(&driver);
+    set(&mut a, "--flame", b("missing_flame.pt"));
+    fails(&a, &bad, "missing_flame.pt");
+
+    let mut a = reenact(&driver);
+    set(&mut a, "--source", b("garbage.png"));
+    fails(&a, &bad, "garbage.png");
+
+    let mut a = reenact(&driver);
+    set(&mut a, "--source-record", b("missing_field.json"));
+    fails(&a, &bad, "missing_field.json");
+
+    fails(&reenact(&b("garbage.json")), &bad, "garbage.json");
+    fails(&reenact(&b("missing_field.json")), &bad, "expcode");
+    fails(&reenact(&b("misshapen.json")), &bad, "expcode");
+    fails(&reenact(&b("no_camera.json")), &bad, "transform_matrix");
+    fails(&reenact(&b("nan.json")), &bad, "posecode");
+    fails(&reenact(&b("no_such_driver")), &bad, "no_such_driver");
+
+    // A .pkl source record needs a frame name; a wrong one is named.
+    let pkl = format!("{}/optim.pkl", release_small());
+    let mut a = reenact(&driver);
+    set(&mut a, "--source-record", pkl.clone());
+    fails(&a, &bad, "source-key");
+    a.extend(["--source-key".to_string(), "nobody_7".to_string()]);
+    fails(&a, &bad, "nobody_7");
+
+    // Side by side without driver images, and a range past the end.
+    let mut a = reenact(&driver);
+    a.push("--side-by-side".into());
+    fails(&a, &bad, "side-by-side");
+    let mut a = reenact(&driver);
+    a.extend(["--start".to_string(), "9".to_string()]);
+    fails(&a, &bad, "--start");
+
+    // An output folder that does not exist.
+    let a = avatar_cmd(
+        f,
+        "reenact",
+        &["--driver", &driver, "-o", &b("no/such/dir/out.mp4")],
+    );
+    fails(&a, &bad, "no/such/dir");
+}
+
+#[test]
+fn reenact_with_a_release_pkl_source_record() {
+    let f = fixture();
+    let out = f.s("pkl_source.gif");
+    let mut args = avatar_cmd(
+        f,
+        "reenact",
+        &[
+            "--driver",
+            &f.s("driver.json"),
+            "--max-frames",
+            "2",
+            "--source-key",
+            "spk_a_1",
+            "-o",
+            &out,
+        ],
+    );
+    let i = args.iter().position(|a| a == "--source-record").unwrap();
+    args[i + 1] = format!("{}/optim.pkl", release_small());
+    ok(&strs(&args));
+    assert!(Path::new(&out).is_file());
+}
