@@ -34,7 +34,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         return Err("usage: OUT IDENTITIES FRAMES SIZE SEED SOURCE_ID DRIVER_ID N_DRIVER".into());
     }
     let out = PathBuf::from(&args[0]);
-    let n: Vec<usize> = args[1..].iter().map(|a| a.parse()).collect::<Result<_, _>>()?;
+    let n: Vec<usize> = args[1..]
+        .iter()
+        .map(|a| a.parse())
+        .collect::<Result<_, _>>()?;
     let (ids, frames, size, seed, src, drv, n_driver) =
         (n[0], n[1], n[2], n[3] as u64, n[4], n[5], n[6]);
     let gen = Generator::new(&synthesize(0), SynthConfig::new(ids, frames, size, seed))?;
