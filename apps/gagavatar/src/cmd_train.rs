@@ -8,7 +8,7 @@ use anyhow::{bail, Context, Result};
 use candle_core::{DType, Device};
 use clap::Args;
 use gagavatar_data::Dataset;
-use gagavatar_train::eval::{evaluate, write_grid};
+use gagavatar_train::eval::{evaluate_with, write_grid};
 use gagavatar_train::pairs::{eval_pairs, SampleSource};
 use gagavatar_train::perceptual::{seeded_weights, PerceptualLoss, PERCEP_PREFIX};
 use gagavatar_train::trainer::load_flame;
@@ -88,7 +88,8 @@ pub struct TrainArgs {
     after_help = "Pairs: in each video of the split, the first frame (natural order) is \
 the source of every other frame (the release's protocol). Prints PSNR and SSIM (luma, 11x11 \
 Gaussian window: the release's validation SSIM) of the fine image, of the coarse splatted RGB \
-and of the source image copied as the prediction.\n\nExample:\n  gagavatar eval --ckpt \
+and of the source image copied as the prediction; with --lpips also LPIPS (AlexNet, lower is \
+better).\n\nExample:\n  gagavatar eval --ckpt \
 runs/tiny/weights.safetensors --data data/synth64 --split test"
 )]
 pub struct EvalArgs {
@@ -115,6 +116,10 @@ pub struct EvalArgs {
     /// Also write a PNG of the first pairs (target | coarse | fine).
     #[arg(long)]
     pub grid: Option<PathBuf>,
+    /// LPIPS (AlexNet) weights: the `lpips` package's `LPIPS(net='alex')` state dict as
+    /// safetensors; adds an LPIPS column.
+    #[arg(long)]
+    pub lpips: Option<PathBuf>,
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
@@ -347,6 +352,11 @@ pub fn run_eval(a: EvalArgs) -> Result<()> {
             model.cfg.n_vertices
         );
     }
+    let lpips = a
+        .lpips
+        .as_deref()
+        .map(|p| gagavatar_train::Lpips::load(p, &dev))
+        .transpose()?;
     let dataset = Dataset::open(&a.data)?;
     let splits = dataset.splits();
     let names = match a.split.as_str() {
@@ -379,12 +389,13 @@ pub fn run_eval(a: EvalArgs) -> Result<()> {
         .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let grid_rows = if a.grid.is_some() { 8 } else { 0 };
-    let result = evaluate(
+    let result = evaluate_with(
         &model,
         &source,
         &a.split,
         &pairs,
         grid_rows,
+        lpips.as_ref(),
         &mut |done, _| {
             bar.set_position(done as u64);
             crate::check_interrupt().is_ok()

@@ -9,6 +9,9 @@
 //! window on luma, reflect padding: the release's validation SSIM), both on images clamped to
 //! [0, 1] at the model's resolution, averaged over pairs. The renderer uses its fixed noise
 //! buffers, so an evaluation is deterministic.
+//!
+//! With LPIPS weights ([`evaluate_with`]), each score also has LPIPS ([`Lpips`], AlexNet, on
+//! the same clamped images; lower is better); without them the report is unchanged.
 
 use std::path::Path;
 
@@ -17,6 +20,7 @@ use gagavatar_net::model::{Avatar, GagAvatar};
 use gagavatar_net::style_unet::Noise;
 use serde::Serialize;
 
+use crate::lpips::Lpips;
 use crate::metrics::{psnr, ssim_gray};
 use crate::pairs::{Pair, SampleSource};
 use crate::run_error::{ckpt_err, RunResult};
@@ -25,6 +29,9 @@ use crate::run_error::{ckpt_err, RunResult};
 pub struct Scores {
     pub psnr: f64,
     pub ssim: f64,
+    /// LPIPS (lower is better), when the evaluation had its weights.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lpips: Option<f64>,
 }
 
 /// The scores of one pair.
@@ -61,9 +68,18 @@ impl EvalReport {
             .iter()
             .map(&f)
             .fold((0.0, 0.0), |(p, s), x| (p + x.psnr, s + x.ssim));
+        // A mean only when every pair has the score (an evaluation has it for all or none).
+        let lpips = self
+            .pairs
+            .iter()
+            .map(|x| f(x).lpips)
+            .sum::<Option<f64>>()
+            .filter(|_| !self.pairs.is_empty())
+            .map(|l| l / n);
         Scores {
             psnr: p / n,
             ssim: s / n,
+            lpips,
         }
     }
 
@@ -86,12 +102,24 @@ impl EvalReport {
             self.split,
             self.pairs.len()
         );
-        s += &format!("{:<26} {:>8} {:>8}\n", "prediction", "PSNR", "SSIM");
-        for (name, sc) in [
+        let rows = [
             ("fine (neural renderer)", self.fine()),
             ("coarse (splatted RGB)", self.coarse()),
             ("copy the source image", self.copy_source()),
-        ] {
+        ];
+        if rows.iter().all(|r| r.1.lpips.is_some()) {
+            s += &format!(
+                "{:<26} {:>8} {:>8} {:>8}   (LPIPS: lower is better)\n",
+                "prediction", "PSNR", "SSIM", "LPIPS"
+            );
+            for (name, sc) in rows {
+                let l = sc.lpips.unwrap_or(f64::NAN);
+                s += &format!("{name:<26} {:>8.3} {:>8.4} {l:>8.4}\n", sc.psnr, sc.ssim);
+            }
+            return s;
+        }
+        s += &format!("{:<26} {:>8} {:>8}\n", "prediction", "PSNR", "SSIM");
+        for (name, sc) in rows {
             s += &format!("{name:<26} {:>8.3} {:>8.4}\n", sc.psnr, sc.ssim);
         }
         s
@@ -110,10 +138,19 @@ impl EvalReport {
     }
 }
 
-fn scores(pred: &Tensor, target: &Tensor) -> RunResult<Scores> {
+fn scores(pred: &Tensor, target: &Tensor, lpips: Option<&Lpips>) -> RunResult<Scores> {
+    let lpips = match lpips {
+        // Clamped like the images PSNR and SSIM see.
+        Some(net) => {
+            let d = net.distances(&pred.clamp(0f32, 1f32)?, &target.clamp(0f32, 1f32)?)?;
+            Some(d.iter().sum::<f64>() / d.len().max(1) as f64)
+        }
+        None => None,
+    };
     Ok(Scores {
         psnr: psnr(pred, target)?,
         ssim: ssim_gray(pred, target)?,
+        lpips,
     })
 }
 
@@ -134,6 +171,19 @@ pub fn evaluate(
     split: &str,
     pairs: &[Pair],
     grid_rows: usize,
+    progress: &mut dyn FnMut(usize, usize) -> bool,
+) -> RunResult<(EvalReport, Vec<GridRow>)> {
+    evaluate_with(model, source, split, pairs, grid_rows, None, progress)
+}
+
+/// [`evaluate`], with LPIPS in every score when `lpips` is given.
+pub fn evaluate_with(
+    model: &GagAvatar,
+    source: &SampleSource,
+    split: &str,
+    pairs: &[Pair],
+    grid_rows: usize,
+    lpips: Option<&Lpips>,
     progress: &mut dyn FnMut(usize, usize) -> bool,
 ) -> RunResult<(EvalReport, Vec<GridRow>)> {
     let dev = model.head_base.device().clone();
@@ -169,9 +219,9 @@ pub fn evaluate(
         out.push(PairScores {
             source: pair.source.clone(),
             target: pair.target.clone(),
-            fine: scores(&frame.fine, gt)?,
-            coarse: scores(&coarse, gt)?,
-            copy_source: scores(&source_image, gt)?,
+            fine: scores(&frame.fine, gt, lpips)?,
+            coarse: scores(&coarse, gt, lpips)?,
+            copy_source: scores(&source_image, gt, lpips)?,
         });
         if grid.len() < grid_rows {
             grid.push(GridRow {

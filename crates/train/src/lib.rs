@@ -8,6 +8,7 @@
 //! - [`perceptual`]: the frozen AlexNet + VGG-Face perceptual distance (`percep_loss.*`);
 //! - [`adam`]: Adam with the release's parameter groups and linear learning-rate decay;
 //! - [`metrics`]: validation PSNR and SSIM;
+//! - [`lpips`](mod@lpips): the LPIPS v0.1 (AlexNet) evaluation metric;
 //! - [`kernels`]: the fused CPU ops of the perceptual network (max-pool, ReLU, layer distance).
 //!
 //! and the training itself:
@@ -29,6 +30,7 @@ pub mod eval;
 pub mod head_box;
 pub mod kernels;
 pub mod losses;
+pub mod lpips;
 pub mod metrics;
 pub mod nearest;
 pub mod pairs;
@@ -42,6 +44,7 @@ pub use error::{Result, TrainError};
 pub use eval::{evaluate, EvalReport, Scores};
 pub use head_box::{crop_resize, head_box, head_boxes, HeadBox};
 pub use losses::{LossConfig, LossInputs, LossTerms, Term, TrainLosses};
+pub use lpips::Lpips;
 pub use metrics::{
     psnr, psnr_per_image, ssim, ssim_gray, ssim_per_image, ssim_per_image_with, SsimWindows,
 };
