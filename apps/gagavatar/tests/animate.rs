@@ -539,3 +539,37 @@ fn reenact_with_a_release_pkl_source_record() {
     ok(&strs(&args));
     assert!(Path::new(&out).is_file());
 }
+
+#[test]
+fn demo_uses_only_shipped_files() {
+    let out = std::env::temp_dir().join(format!("gagavatar_demo_{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    // Run from a directory without assets/: the binary finds the checkout's assets itself.
+    let res = Command::new(BIN)
+        .args(["demo", "-o", &out.display().to_string()])
+        .current_dir(std::env::temp_dir())
+        .output()
+        .expect("running the demo");
+    assert!(
+        res.status.success(),
+        "demo failed:\n{}",
+        String::from_utf8_lossy(&res.stderr)
+    );
+    let re = gagavatar_video::mp4::read_mp4_info(&out.join("reenact.mp4")).unwrap();
+    let driver: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/demo/driver.json"),
+        )
+        .unwrap(),
+    )
+    .unwrap();
+    let n = driver["frames"].as_array().unwrap().len();
+    assert_eq!((re.frames, re.width, re.height), (n, 2 * SIZE, SIZE));
+    let orbit = gagavatar_video::mp4::read_mp4_info(&out.join("orbit.mp4")).unwrap();
+    assert_eq!((orbit.width, orbit.height), (SIZE, SIZE));
+    assert!(orbit.frames > 10);
+    let scene = GaussianScene::load(&out.join("avatar.ply")).unwrap();
+    assert_eq!(scene.channels, 32);
+    assert!(!scene.is_empty());
+    let _ = std::fs::remove_dir_all(&out);
+}
