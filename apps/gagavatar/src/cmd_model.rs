@@ -12,6 +12,7 @@ use gagavatar_flame::{
 };
 use gagavatar_net::checkpoint::{self, check_keys, read_weights, write_safetensors, write_tensors};
 use gagavatar_net::style_unet::Noise;
+use gagavatar_net::torch_writer::write_torch_checkpoint;
 use gagavatar_net::ModelConfig;
 use gagavatar_ops::{resize, ResizeMode};
 
@@ -25,11 +26,15 @@ pub fn preset(name: &str) -> Result<ModelConfig> {
 }
 
 #[derive(Debug, Args)]
-#[command(after_help = "Example:\n  gagavatar convert GAGAvatar.pt gagavatar.safetensors")]
+#[command(
+    after_help = "Examples:\n  gagavatar convert GAGAvatar.pt gagavatar.safetensors\n  gagavatar convert trained.safetensors trained.pt   # loads in the release Python code"
+)]
 pub struct ConvertArgs {
     /// The release checkpoint (torch zip) or a safetensors file.
     input: PathBuf,
-    /// Output safetensors (same keys; the configuration is stored in its metadata).
+    /// Output: a `.pt`/`.pth` name writes a torch checkpoint in the release layout
+    /// (`{"model": state_dict, "meta_cfg": config}`, for `torch.load`); any other name writes
+    /// safetensors (same keys; the configuration is stored in its metadata).
     output: PathBuf,
     /// Architecture of the weights (`release`, `small`, `tiny`); default: from the file, else release.
     #[arg(long)]
@@ -43,7 +48,16 @@ pub fn run_convert(a: ConvertArgs) -> Result<()> {
     let cfg = checkpoint::resolve_config(&weights, explicit.as_ref());
     check_keys(&cfg, &weights.tensors)?;
     let tensors: BTreeMap<String, Tensor> = weights.tensors.into_iter().collect();
-    write_tensors(&a.output, &tensors, Some(&cfg))?;
+    let torch = a
+        .output
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("pt") || e.eq_ignore_ascii_case("pth"));
+    if torch {
+        write_torch_checkpoint(&a.output, &tensors, Some(&cfg))?;
+    } else {
+        write_tensors(&a.output, &tensors, Some(&cfg))?;
+    }
     eprintln!(
         "wrote {} ({} tensors, `{}` architecture)",
         a.output.display(),

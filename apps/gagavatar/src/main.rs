@@ -34,7 +34,7 @@ enum Command {
     /// FLAME head model utilities.
     #[command(subcommand)]
     Flame(cmd_flame::FlameCmd),
-    /// Convert the release checkpoint (or any weights) to safetensors, checking every key.
+    /// Convert weights between the release `.pt` and safetensors (by extension), checking every key.
     Convert(cmd_model::ConvertArgs),
     /// Write a complete checkpoint of seeded random weights in the release key layout.
     InitWeights(cmd_model::InitWeightsArgs),

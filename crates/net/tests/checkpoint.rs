@@ -142,3 +142,97 @@ fn corrupt_and_wrong_files_are_clear_errors() {
     let e = read_weights(&bad).err().expect("int weights");
     assert!(e.to_string().contains("floating point"), "{e}");
 }
+
+/// The torch checkpoint writer: the tiny model plus edge-case tensors (a 0-d scalar, NaN, -0.0,
+/// subnormals) read back bit for bit, in torch's archive layout.
+#[test]
+fn torch_checkpoint_round_trips_bit_exactly() {
+    use gagavatar_net::torch_writer::write_torch_checkpoint;
+    use std::io::Read;
+
+    let cfg = ModelConfig::tiny();
+    let mut tensors: BTreeMap<String, Tensor> = init_weights(&cfg, 1)
+        .unwrap()
+        .into_iter()
+        .map(|(k, (s, v))| (k, Tensor::from_vec(v, s, &Device::Cpu).unwrap()))
+        .collect();
+    let odd = vec![
+        f32::NAN,
+        -0.0,
+        f32::from_bits(1),
+        f32::MAX,
+        f32::NEG_INFINITY,
+        1.5,
+    ];
+    tensors.insert(
+        "percep_loss.odd".into(),
+        Tensor::from_vec(odd, (2, 3), &Device::Cpu).unwrap(),
+    );
+    tensors.insert(
+        "percep_loss.scalar".into(),
+        Tensor::new(7.25f32, &Device::Cpu).unwrap(),
+    );
+    let path = tmp("torch_writer.pt");
+    write_torch_checkpoint(&path, &tensors, Some(&cfg)).unwrap();
+
+    let back = read_weights(&path).unwrap();
+    assert_eq!(back.tensors.len(), tensors.len(), "tensor count");
+    for (k, want) in &tensors {
+        let got = back
+            .tensors
+            .get(k)
+            .unwrap_or_else(|| panic!("`{k}` missing"));
+        assert_eq!(got.dims(), want.dims(), "`{k}` shape");
+        let w = want.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let g = got.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        for (i, (a, b)) in w.iter().zip(&g).enumerate() {
+            assert_eq!(
+                a.to_bits(),
+                b.to_bits(),
+                "`{k}`[{i}]: expected {a:e}, got {b:e}"
+            );
+        }
+    }
+    check_keys(&cfg, &back.tensors).unwrap();
+
+    // torch's reader takes the top folder from the first entry and needs `version`; storages
+    // are 64-byte aligned so `torch.load(mmap=True)` can map them.
+    let mut zip = zip::ZipArchive::new(std::fs::File::open(&path).unwrap()).unwrap();
+    let names: Vec<String> = zip.file_names().map(|s| s.unwrap().into_owned()).collect();
+    assert_eq!(names.first().map(String::as_str), Some("archive/data.pkl"));
+    assert!(names.iter().all(|n| n.starts_with("archive/")), "{names:?}");
+    assert_eq!(
+        names
+            .iter()
+            .filter(|n| n.starts_with("archive/data/"))
+            .count(),
+        tensors.len()
+    );
+    for i in 0..zip.len() {
+        let f = zip.by_index(i).unwrap();
+        let start = f.data_start().unwrap();
+        assert_eq!(start % 64, 0, "{:?} data starts at {start}", f.name());
+    }
+    let mut read = |name: &str| {
+        let mut v = Vec::new();
+        zip.by_name(name).unwrap().read_to_end(&mut v).unwrap();
+        v
+    };
+    assert_eq!(read("archive/version"), b"3\n");
+    assert_eq!(read("archive/byteorder"), b"little");
+    let pkl = read("archive/data.pkl");
+    let has = |needle: &[u8]| pkl.windows(needle.len()).any(|w| w == needle);
+    assert!(
+        has(b"meta_cfg") && has(b"decoder_channel_base"),
+        "config in data.pkl"
+    );
+    // The writer leaves no temp sibling behind.
+    let dir = path.parent().unwrap();
+    let leftovers: Vec<_> = std::fs::read_dir(dir)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.contains("torch_writer.pt") && n != "torch_writer.pt")
+        .collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+}
