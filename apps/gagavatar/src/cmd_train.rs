@@ -29,8 +29,9 @@ asset (seed 0: the one `gagavatar flame synth` writes and `gagavatar synth-data`
 The run folder gets config.toml (effective configuration), metrics.jsonl (one JSON object per \
 logged step), val/step_*.png (target | coarse | fine), checkpoint.safetensors (resumable: \
 weights, optimizer, step, config) and weights.safetensors (the model alone, release key layout: \
-`gagavatar reenact --ckpt RUN/weights.safetensors` loads it). Ctrl-C writes a checkpoint and \
-stops.\n\n\
+`gagavatar reenact --ckpt RUN/weights.safetensors` loads it; `gagavatar convert \
+RUN/weights.safetensors GAGAvatar.pt` makes the release's torch checkpoint). Ctrl-C writes a \
+checkpoint and stops.\n\n\
 Speed: unless the environment sets it, CANDLE_BARRIER_POOL_SPIN_LIMIT=0 is used (candle's \
 element-wise pool otherwise spin-waits between the many small ops of a step: 4x slower tiny \
 steps on a busy 2-core machine). CANDLE_NUM_THREADS=1 made tiny steps another ~20% faster there."
