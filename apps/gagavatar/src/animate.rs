@@ -12,6 +12,7 @@ use gagavatar_flame::{FlameIdentity, FlameModel, TrackedFrame};
 use gagavatar_net::checkpoint;
 use gagavatar_net::model::{Avatar, GagAvatar};
 use gagavatar_net::style_unet::Noise;
+use gagavatar_video::{VideoOptions, VideoWriter};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cmd_model::{load_flame, preset, read_image};
@@ -208,6 +209,64 @@ impl Session {
         self.timings.renderer += t1.elapsed();
         self.timings.frames += records.len();
         to_rgb8(&fine)
+    }
+}
+
+/// One output frame to render: the expression record, a name for errors, the camera.
+pub struct FrameJob<'a> {
+    pub record: &'a TrackedFrame,
+    pub name: String,
+    pub transform: [[f64; 4]; 3],
+}
+
+impl Session {
+    /// Renders `jobs` in batches into a video at `output` (format by extension), `decorate`
+    /// turning frame `i`'s rendered image into the written one (e.g. side by side with its
+    /// driver); `width` is the written width. Progress bar, Ctrl-C check between batches,
+    /// encode time in the timings.
+    #[allow(clippy::too_many_arguments)]
+    pub fn render_video(
+        &mut self,
+        output: &Path,
+        width: usize,
+        opts: VideoOptions,
+        jobs: &[FrameJob],
+        batch: usize,
+        label: &str,
+        mut decorate: impl FnMut(usize, Vec<u8>) -> Result<Vec<u8>>,
+    ) -> Result<()> {
+        let size = self.image_size();
+        let fps = opts.fps;
+        let mut writer = VideoWriter::create(output, width, size, opts)
+            .with_context(|| format!("creating {}", output.display()))?;
+        let bar = progress(jobs.len(), label);
+        for (c, chunk) in jobs.chunks(batch.max(1)).enumerate() {
+            crate::check_interrupt()?;
+            let records: Vec<_> = chunk.iter().map(|j| j.record).collect();
+            let names: Vec<String> = chunk.iter().map(|j| j.name.clone()).collect();
+            let transforms: Vec<_> = chunk.iter().map(|j| j.transform).collect();
+            for (k, img) in self
+                .render(&records, &names, &transforms)?
+                .into_iter()
+                .enumerate()
+            {
+                let frame = decorate(c * batch.max(1) + k, img)?;
+                let t0 = Instant::now();
+                writer.push_rgb(&frame)?;
+                self.timings.encode += t0.elapsed();
+                bar.inc(1);
+            }
+        }
+        let t0 = Instant::now();
+        writer.finish()?;
+        self.timings.encode += t0.elapsed();
+        bar.finish_and_clear();
+        eprintln!(
+            "wrote {} ({} frames, {width}x{size}, {fps} fps)",
+            output.display(),
+            jobs.len()
+        );
+        Ok(())
     }
 }
 

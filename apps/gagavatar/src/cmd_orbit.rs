@@ -8,9 +8,9 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use gagavatar_flame::TrackedFrame;
 use gagavatar_splat::{Camera, GaussianScene};
-use gagavatar_video::{VideoOptions, VideoWriter};
+use gagavatar_video::VideoOptions;
 
-use crate::animate::{progress, read_source_record, record_transform, Session, SourceArgs};
+use crate::animate::{read_source_record, record_transform, FrameJob, Session, SourceArgs};
 
 #[derive(Debug, Args)]
 #[command(
@@ -105,42 +105,23 @@ pub fn run_orbit(a: OrbitArgs) -> Result<()> {
             )
         })
         .collect();
+    let jobs: Vec<FrameJob> = transforms
+        .into_iter()
+        .enumerate()
+        .map(|(k, transform)| FrameJob {
+            record: &expr,
+            name: format!("orbit view {k}"),
+            transform,
+        })
+        .collect();
+    let opts = VideoOptions {
+        fps: a.fps,
+        watermark: !a.no_watermark,
+    };
     let size = session.image_size();
-    let mut writer = VideoWriter::create(
-        &a.output,
-        size,
-        size,
-        VideoOptions {
-            fps: a.fps,
-            watermark: !a.no_watermark,
-        },
-    )
-    .with_context(|| format!("creating {}", a.output.display()))?;
-    let bar = progress(a.frames, "orbit");
-    let mut i = 0;
-    while i < a.frames {
-        crate::check_interrupt()?;
-        let j = (i + a.batch).min(a.frames);
-        let records = vec![&expr; j - i];
-        let names: Vec<String> = (i..j).map(|k| format!("orbit view {k}")).collect();
-        for img in session.render(&records, &names, &transforms[i..j])? {
-            let t0 = Instant::now();
-            writer.push_rgb(&img)?;
-            session.timings.encode += t0.elapsed();
-            bar.inc(1);
-        }
-        i = j;
-    }
-    let t0 = Instant::now();
-    writer.finish()?;
-    session.timings.encode += t0.elapsed();
-    bar.finish_and_clear();
-    eprintln!(
-        "wrote {} ({} frames, {size}x{size}, {} fps)",
-        a.output.display(),
-        a.frames,
-        a.fps
-    );
+    session.render_video(&a.output, size, opts, &jobs, a.batch, "orbit", |_, img| {
+        Ok(img)
+    })?;
     eprintln!("{}", session.timings.report(start_time.elapsed()));
     Ok(())
 }

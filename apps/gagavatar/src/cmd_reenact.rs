@@ -6,9 +6,9 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use gagavatar_data::DriverSequence;
-use gagavatar_video::{VideoOptions, VideoWriter};
+use gagavatar_video::VideoOptions;
 
-use crate::animate::{progress, record_transform, side_by_side, Session, SourceArgs};
+use crate::animate::{record_transform, side_by_side, FrameJob, Session, SourceArgs};
 
 #[derive(Debug, Args)]
 #[command(
@@ -87,55 +87,39 @@ pub fn run(a: ReenactArgs) -> Result<()> {
     let mut session = Session::open(&a.src)?;
     let size = session.image_size();
     let width = if a.side_by_side { 2 * size } else { size };
-    let mut writer = VideoWriter::create(
+    let jobs: Vec<FrameJob> = driver.frames[a.start..end]
+        .iter()
+        .zip(transforms)
+        .map(|(f, transform)| FrameJob {
+            record: &f.record,
+            name: format!("{} of {}", f.name, a.driver.display()),
+            transform,
+        })
+        .collect();
+    let opts = VideoOptions {
+        fps,
+        watermark: !a.no_watermark,
+    };
+    session.render_video(
         &a.output,
         width,
-        size,
-        VideoOptions {
-            fps,
-            watermark: !a.no_watermark,
+        opts,
+        &jobs,
+        a.batch,
+        "reenact",
+        |k, img| {
+            if !a.side_by_side {
+                return Ok(img);
+            }
+            let i = a.start + k;
+            let name = &driver.frames[i].name;
+            let left = driver
+                .image(i)
+                .with_context(|| format!("reading the image of driver frame `{name}`"))?
+                .with_context(|| format!("driver frame `{name}` has no image"))?;
+            Ok(side_by_side(&left, &img, size, size))
         },
-    )
-    .with_context(|| format!("creating {}", a.output.display()))?;
-    let bar = progress(end - a.start, "reenact");
-    let mut i = a.start;
-    while i < end {
-        crate::check_interrupt()?;
-        let j = (i + a.batch).min(end);
-        let frames = &driver.frames[i..j];
-        let records: Vec<_> = frames.iter().map(|f| &f.record).collect();
-        let names: Vec<String> = frames
-            .iter()
-            .map(|f| format!("{} of {}", f.name, a.driver.display()))
-            .collect();
-        let images = session.render(&records, &names, &transforms[i - a.start..j - a.start])?;
-        for (k, img) in images.into_iter().enumerate() {
-            let frame = if a.side_by_side {
-                let name = &driver.frames[i + k].name;
-                let left = driver
-                    .image(i + k)
-                    .with_context(|| format!("reading the image of driver frame `{name}`"))?
-                    .with_context(|| format!("driver frame `{name}` has no image"))?;
-                side_by_side(&left, &img, size, size)
-            } else {
-                img
-            };
-            let t0 = Instant::now();
-            writer.push_rgb(&frame)?;
-            session.timings.encode += t0.elapsed();
-            bar.inc(1);
-        }
-        i = j;
-    }
-    let t0 = Instant::now();
-    writer.finish()?;
-    session.timings.encode += t0.elapsed();
-    bar.finish_and_clear();
-    eprintln!(
-        "wrote {} ({} frames, {width}x{size}, {fps} fps)",
-        a.output.display(),
-        end - a.start
-    );
+    )?;
     eprintln!("{}", session.timings.report(start_time.elapsed()));
     Ok(())
 }
