@@ -7,9 +7,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use candle_core::{DType, Device, Tensor};
 use clap::Args;
-use gagavatar_flame::{
-    BasisLayout, FlameAsset, FlameConfig, FlameModel, LoadOptions, TrackedFrame, FLAME_SCALE,
-};
+use gagavatar_flame::{BasisLayout, FlameAsset, FlameModel, LoadOptions, TrackedFrame};
 use gagavatar_net::checkpoint::{self, check_keys, read_weights, write_safetensors, write_tensors};
 use gagavatar_net::style_unet::Noise;
 use gagavatar_net::torch_writer::write_torch_checkpoint;
@@ -151,12 +149,7 @@ pub fn load_flame(path: &Path, n_shape: usize, n_exp: usize) -> Result<FlameMode
             )
         })?
     };
-    let config = FlameConfig {
-        n_shape: asset.layout.shape,
-        n_exp: asset.layout.expression,
-        scale: FLAME_SCALE,
-    };
-    Ok(FlameModel::new(&asset, config, &Device::Cpu, DType::F32)?)
+    Ok(FlameModel::from_asset(&asset, &Device::Cpu, DType::F32)?)
 }
 
 pub fn transform_tensor(record: &TrackedFrame, which: &str) -> Result<Tensor> {

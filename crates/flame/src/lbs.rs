@@ -138,6 +138,17 @@ pub struct FlameModel {
 }
 
 impl FlameModel {
+    /// The model with all of the asset's shape and expression components and the release's
+    /// x5 scale: what every command and the dataset tools use.
+    pub fn from_asset(asset: &FlameAsset, device: &Device, dtype: DType) -> Result<Self> {
+        let config = FlameConfig {
+            n_shape: asset.layout.shape,
+            n_exp: asset.layout.expression,
+            scale: FLAME_SCALE,
+        };
+        Self::new(asset, config, device, dtype)
+    }
+
     pub fn new(
         asset: &FlameAsset,
         config: FlameConfig,

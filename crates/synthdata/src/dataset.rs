@@ -20,7 +20,7 @@ use std::sync::Mutex;
 use candle_core::{DType, Device, Tensor};
 use gagavatar_data::{encode_png, write_release_dataset, DatasetSplits, TrackedFrame};
 use gagavatar_flame::landmarks::NDC_FOCAL;
-use gagavatar_flame::{FlameAsset, FlameConfig, FlameModel, FLAME_SCALE};
+use gagavatar_flame::{FlameAsset, FlameModel, FLAME_SCALE};
 use gagavatar_splat::scene::temp_sibling;
 use image::RgbImage;
 use rayon::prelude::*;
@@ -202,15 +202,10 @@ impl Generator {
     /// Checks the config and builds the float32 FLAME model (all of the asset's components).
     pub fn new(asset: &FlameAsset, config: SynthConfig) -> Result<Self> {
         config.validate()?;
-        let flame_config = FlameConfig {
-            n_shape: asset.layout.shape,
-            n_exp: asset.layout.expression,
-            scale: FLAME_SCALE,
-        };
         config
             .sampling
-            .validate(flame_config.n_shape, flame_config.n_exp)?;
-        let model = FlameModel::new(asset, flame_config, &Device::Cpu, DType::F32)?;
+            .validate(asset.layout.shape, asset.layout.expression)?;
+        let model = FlameModel::from_asset(asset, &Device::Cpu, DType::F32)?;
         let anchors = HeadAnchors::new(asset)?;
         let raster = Rasterizer::new(config.size, config.size, config.resolved_supersample())?;
         Ok(Self {

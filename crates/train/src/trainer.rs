@@ -30,7 +30,7 @@ use std::time::Instant;
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarMap;
 use gagavatar_data::Dataset;
-use gagavatar_flame::{synthesize, FlameAsset, FlameConfig, FlameModel, LoadOptions, FLAME_SCALE};
+use gagavatar_flame::{synthesize, FlameAsset, FlameModel, LoadOptions};
 use gagavatar_net::checkpoint::{read_weights, write_tensors};
 use gagavatar_net::model::GagAvatar;
 use gagavatar_net::style_unet::Noise;
@@ -298,12 +298,7 @@ pub fn load_flame(path: Option<&Path>) -> RunResult<FlameModel> {
         })?,
         None => synthesize(0),
     };
-    let cfg = FlameConfig {
-        n_shape: asset.layout.shape,
-        n_exp: asset.layout.expression,
-        scale: FLAME_SCALE,
-    };
-    Ok(FlameModel::new(&asset, cfg, &Device::Cpu, DType::F32)?)
+    Ok(FlameModel::from_asset(&asset, &Device::Cpu, DType::F32)?)
 }
 
 /// Perceptual-network weights (`percep_loss.*` keys) from a file: the release `.pt`, or
