@@ -420,15 +420,15 @@ pub fn write_safetensors<'a>(
         let json = serde_json::to_string(cfg).map_err(|e| NetError::Config(e.to_string()))?;
         meta.insert(CONFIG_METADATA_KEY.to_string(), json);
     }
-    let tmp = gagavatar_splat::scene::temp_sibling(path);
     let refs: Vec<(&str, &F32View)> = views.iter().map(|(k, v)| (k.as_str(), v)).collect();
-    let result = safetensors::tensor::serialize_to_file(refs, Some(meta), &tmp)
-        .map_err(|e| format_err(path, e))
-        .and_then(|_| std::fs::rename(&tmp, path).map_err(|e| io_err(path, e)));
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+    gagavatar_splat::scene::write_via_temp(
+        path,
+        |tmp| {
+            safetensors::tensor::serialize_to_file(refs, Some(meta), tmp)
+                .map_err(|e| format_err(path, e))
+        },
+        |e| io_err(path, e),
+    )
 }
 
 /// Writes candle tensors (converted to f32) as safetensors atomically.

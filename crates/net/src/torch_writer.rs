@@ -273,13 +273,11 @@ pub fn write_torch_checkpoint(
         .collect();
     let pickle = checkpoint_pickle(&shapes, cfg_json.as_ref());
 
-    let tmp = gagavatar_splat::scene::temp_sibling(path);
-    let result = write_archive(&tmp, path, &pickle, tensors)
-        .and_then(|_| std::fs::rename(&tmp, path).map_err(|e| io_err(path, e)));
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+    gagavatar_splat::scene::write_via_temp(
+        path,
+        |tmp| write_archive(tmp, path, &pickle, tensors),
+        |e| io_err(path, e),
+    )
 }
 
 fn write_archive(

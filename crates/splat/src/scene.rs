@@ -8,7 +8,6 @@
 
 use crate::error::{Result, SplatError};
 use candle_core::{DType, Device, Tensor};
-use std::io::Write;
 use std::path::Path;
 
 /// Zeroth-order spherical-harmonic constant used by 3DGS to store colours.
@@ -455,17 +454,52 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
         path: path.display().to_string(),
         source,
     };
+    write_via_temp(path, |tmp| std::fs::write(tmp, bytes).map_err(io), io)
+}
+
+/// The project's one atomic-output mechanism: `write(tmp)` fills a temp sibling of `path`
+/// (see [`temp_sibling`]), which is then synced and renamed over `path`. On any failure the temp
+/// file is removed and `path` is left as it was.
+pub fn write_via_temp<E>(
+    path: &Path,
+    write: impl FnOnce(&Path) -> std::result::Result<(), E>,
+    io_err: impl Fn(std::io::Error) -> E,
+) -> std::result::Result<(), E> {
     let tmp = temp_sibling(path);
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
+    let result = write(&tmp)
+        .and_then(|()| {
+            std::fs::File::open(&tmp)
+                .and_then(|f| f.sync_all())
+                .map_err(&io_err)
+        })
+        .and_then(|()| std::fs::rename(&tmp, path).map_err(&io_err));
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
-    result.map_err(io)
+    result
+}
+
+/// Puts the finished directory `tmp` at `dir`. An existing `dir` is first moved to a second temp
+/// name and deleted only after the new one is in place (a directory cannot be renamed over a
+/// non-empty one); if the second rename fails the old one is moved back.
+pub fn replace_dir(tmp: &Path, dir: &Path) -> std::io::Result<()> {
+    if !dir.exists() {
+        return std::fs::rename(tmp, dir);
+    }
+    let mut old = temp_sibling(dir).into_os_string();
+    old.push(".old");
+    let old = std::path::PathBuf::from(old);
+    if old.exists() {
+        std::fs::remove_dir_all(&old)?;
+    }
+    std::fs::rename(dir, &old)?;
+    if let Err(e) = std::fs::rename(tmp, dir) {
+        let _ = std::fs::rename(&old, dir);
+        return Err(e);
+    }
+    // The new data is in place; failing to delete the old copy loses nothing.
+    let _ = std::fs::remove_dir_all(&old);
+    Ok(())
 }
 
 mod ply {

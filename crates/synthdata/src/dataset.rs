@@ -677,28 +677,8 @@ impl Generator {
 /// Renames the finished `tmp` folder to `dir`; an existing `dir` is moved aside first and
 /// deleted once the new one is in place (moved back if that fails).
 fn move_into_place(tmp: &Path, dir: &Path) -> Result<()> {
-    let err = |path: &Path, what: &str, e: std::io::Error| SynthError::Output {
-        path: path.to_owned(),
-        reason: format!("{what}: {e}"),
-    };
-    if !dir.exists() {
-        return std::fs::rename(tmp, dir).map_err(|e| err(dir, "cannot move into place", e));
-    }
-    let old: PathBuf = {
-        let mut name = temp_sibling(dir).into_os_string();
-        name.push(".old");
-        name.into()
-    };
-    if old.exists() {
-        std::fs::remove_dir_all(&old)
-            .map_err(|e| err(&old, "cannot remove a stale temporary", e))?;
-    }
-    std::fs::rename(dir, &old).map_err(|e| err(dir, "cannot move the old folder aside", e))?;
-    if let Err(e) = std::fs::rename(tmp, dir) {
-        let _ = std::fs::rename(&old, dir);
-        return Err(err(dir, "cannot move into place", e));
-    }
-    // The new data is in place; failing to delete the old copy loses nothing.
-    let _ = std::fs::remove_dir_all(&old);
-    Ok(())
+    gagavatar_splat::scene::replace_dir(tmp, dir).map_err(|e| SynthError::Output {
+        path: dir.to_owned(),
+        reason: format!("cannot move the new folder into place: {e}"),
+    })
 }

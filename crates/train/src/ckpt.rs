@@ -126,20 +126,15 @@ pub fn write_safetensors_atomic(
         .iter()
         .map(|(k, t)| Ok((k.clone(), TensorView::new(t)?)))
         .collect::<RunResult<_>>()?;
-    let tmp = gagavatar_splat::scene::temp_sibling(path);
     let refs: Vec<(&str, &TensorView)> = views.iter().map(|(k, v)| (k.as_str(), v)).collect();
-    let result = safetensors::tensor::serialize_to_file(refs, Some(metadata), &tmp)
-        .map_err(|e| ckpt_err(path, format!("cannot write: {e}")))
-        .and_then(|_| {
-            std::fs::File::open(&tmp)
-                .and_then(|f| f.sync_all())
-                .map_err(io_err(&tmp, "cannot sync"))
-        })
-        .and_then(|_| std::fs::rename(&tmp, path).map_err(io_err(path, "cannot write")));
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+    gagavatar_splat::scene::write_via_temp(
+        path,
+        |tmp| {
+            safetensors::tensor::serialize_to_file(refs, Some(metadata), tmp)
+                .map_err(|e| ckpt_err(path, format!("cannot write: {e}")))
+        },
+        |e| io_err(path, "cannot write")(e),
+    )
 }
 
 /// Writes the checkpoint (see the module docs).
