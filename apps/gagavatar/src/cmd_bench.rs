@@ -223,22 +223,14 @@ fn bench_model(args: ModelBench) -> Result<()> {
             let mut t = Vec::with_capacity(names.len());
             let start = Instant::now();
             let mut lap = start;
-            let (avatar, _) = model.reconstruct_staged(&image, &tm, &mut |name| {
+            let (avatar, _) = model.reconstruct_staged(&image, &tm, &mut |_| {
                 t.push(lap.elapsed().as_secs_f64());
-                if std::env::var_os("GAGAVATAR_STAGE_RSS").is_some() {
-                    eprintln!("{name}: peak {:?} MiB", peak_rss_mib());
-                    let _ = std::fs::write("/proc/self/clear_refs", "5");
-                }
                 lap = Instant::now();
             })?;
             t.push(start.elapsed().as_secs_f64());
             let d0 = Instant::now();
             let coarse = model.splat_coarse(&avatar, &verts, &tm)?;
             t.push(d0.elapsed().as_secs_f64());
-            if std::env::var_os("GAGAVATAR_STAGE_RSS").is_some() {
-                eprintln!("splat: peak {:?} MiB", peak_rss_mib());
-                let _ = std::fs::write("/proc/self/clear_refs", "5");
-            }
             let r0 = Instant::now();
             model.render(&coarse, Noise::Fixed)?;
             t.push(r0.elapsed().as_secs_f64());
