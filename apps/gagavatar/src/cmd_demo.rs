@@ -11,7 +11,7 @@ use clap::Args;
 
 use crate::animate::SourceArgs;
 use crate::cmd_model::SYNTHETIC_FLAME;
-use crate::cmd_orbit::{ExportPlyArgs, OrbitArgs};
+use crate::cmd_orbit::{ExportPlyArgs, ExpressionArgs, OrbitArgs};
 use crate::cmd_reenact::ReenactArgs;
 
 #[derive(Debug, Args)]
@@ -89,8 +89,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     crate::cmd_orbit::run_orbit(OrbitArgs {
         src: src(),
         output: a.output.join("orbit.mp4"),
-        expression: None,
-        expression_key: None,
+        expression: ExpressionArgs::default(),
         yaw: 35.0,
         pitch: 15.0,
         frames: 75,
@@ -102,8 +101,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     crate::cmd_orbit::run_export_ply(ExportPlyArgs {
         src: src(),
         output: a.output.join("avatar.ply"),
-        expression: None,
-        expression_key: None,
+        expression: ExpressionArgs::default(),
     })?;
     eprintln!(
         "demo done in {:.1} s: {}/reenact.mp4, orbit.mp4, avatar.ply",

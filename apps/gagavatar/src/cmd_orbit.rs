@@ -27,12 +27,8 @@ pub struct OrbitArgs {
     /// Output: .mp4, .gif, or a folder of PNGs.
     #[arg(short, long)]
     pub output: PathBuf,
-    /// Expression, jaw and eyes from this record (JSON, or a `.pkl` with --expression-key).
-    #[arg(long)]
-    pub expression: Option<PathBuf>,
-    /// Frame name inside a `.pkl` expression record.
-    #[arg(long)]
-    pub expression_key: Option<String>,
+    #[command(flatten)]
+    pub expression: ExpressionArgs,
     /// Largest yaw, degrees.
     #[arg(long, default_value_t = 30.0)]
     pub yaw: f64,
@@ -68,14 +64,24 @@ pub fn orbit_transform(base: &[[f64; 4]; 3], yaw: f64, pitch: f64) -> [[f64; 4];
     out
 }
 
-fn expression_record(
-    session_source: &TrackedFrame,
-    path: Option<&PathBuf>,
-    key: Option<&str>,
-) -> Result<TrackedFrame> {
-    match path {
-        Some(p) => read_source_record(p, key),
-        None => Ok(session_source.clone()),
+/// The expression (with jaw and eyes) an orbit or export uses.
+#[derive(Debug, Default, Args)]
+pub struct ExpressionArgs {
+    /// Expression, jaw and eyes from this record (JSON, or a `.pkl` with --expression-key);
+    /// default: the source's own.
+    #[arg(long)]
+    pub expression: Option<PathBuf>,
+    /// Frame name inside a `.pkl` expression record.
+    #[arg(long)]
+    pub expression_key: Option<String>,
+}
+
+impl ExpressionArgs {
+    fn record(&self, source: &TrackedFrame) -> Result<TrackedFrame> {
+        match &self.expression {
+            Some(p) => read_source_record(p, self.expression_key.as_deref()),
+            None => Ok(source.clone()),
+        }
     }
 }
 
@@ -88,11 +94,7 @@ pub fn run_orbit(a: OrbitArgs) -> Result<()> {
         bail!("--yaw and --pitch must be finite angles within +-90 degrees");
     }
     let mut session = Session::open(&a.src)?;
-    let expr = expression_record(
-        &session.source,
-        a.expression.as_ref(),
-        a.expression_key.as_deref(),
-    )?;
+    let expr = a.expression.record(&session.source)?;
     let base = record_transform(&session.source, "the source record")?;
     let transforms: Vec<_> = (0..a.frames)
         .map(|i| {
@@ -143,22 +145,13 @@ pub struct ExportPlyArgs {
     /// Output .ply.
     #[arg(short, long)]
     pub output: PathBuf,
-    /// Expression, jaw and eyes from this record (JSON, or a `.pkl` with --expression-key);
-    /// default: the source's own.
-    #[arg(long)]
-    pub expression: Option<PathBuf>,
-    /// Frame name inside a `.pkl` expression record.
-    #[arg(long)]
-    pub expression_key: Option<String>,
+    #[command(flatten)]
+    pub expression: ExpressionArgs,
 }
 
 pub fn run_export_ply(a: ExportPlyArgs) -> Result<()> {
     let mut session = Session::open(&a.src)?;
-    let expr = expression_record(
-        &session.source,
-        a.expression.as_ref(),
-        a.expression_key.as_deref(),
-    )?;
+    let expr = a.expression.record(&session.source)?;
     let verts = session.vertices(&[&expr], &["expression".to_string()])?;
     let av = &session.avatar;
     let flat = |t: &candle_core::Tensor| -> Result<Vec<f32>> {
