@@ -45,29 +45,23 @@ pub trait Real:
         }
         mask
     }
-    /// `acc = sum_i w_i * features[g_i]` in list order, for one pixel (`acc.len()` channels).
+    /// `acc += w * feat` over the channels: one Gaussian's contribution to one pixel.
     #[inline(always)]
-    fn weighted_sum(list: &[(u32, Self)], features: &[Self], acc: &mut [Self]) {
-        let c = acc.len();
-        if let Ok(out) = <&mut [Self; 32]>::try_from(&mut *acc) {
-            // Fixed width: the accumulator lives in registers and the loop vectorises.
-            let mut a = [Self::ZERO; 32];
-            for &(g, w) in list {
-                let g = g as usize;
-                if let Ok(f) = <&[Self; 32]>::try_from(&features[g * 32..g * 32 + 32]) {
-                    for i in 0..32 {
-                        a[i] += f[i] * w;
-                    }
-                }
+    fn accumulate(acc: &mut [Self], feat: &[Self], w: Self) {
+        if let (Ok(a), Ok(f)) = (
+            <&mut [Self; 32]>::try_from(&mut *acc),
+            <&[Self; 32]>::try_from(feat),
+        ) {
+            // Fixed width and local copies (no aliasing to rule out) so the loop compiles to
+            // whole vectors.
+            let (fv, mut av) = (*f, *a);
+            for i in 0..32 {
+                av[i] += fv[i] * w;
             }
-            *out = a;
+            *a = av;
         } else {
-            acc.iter_mut().for_each(|v| *v = Self::ZERO);
-            for &(g, w) in list {
-                let f = &features[g as usize * c..(g as usize + 1) * c];
-                for (a, &fv) in acc.iter_mut().zip(f) {
-                    *a += fv * w;
-                }
+            for (a, &fv) in acc.iter_mut().zip(feat) {
+                *a += fv * w;
             }
         }
     }
@@ -107,20 +101,31 @@ pub trait Real:
     ) -> Self {
         Self::blend_back(local, dp, feat, rec, w, alpha, one_m)
     }
-    /// [`crate::raster::row_step`] compiled for AVX-512.
+    /// [`crate::raster::row_alpha`] compiled for AVX-512.
     ///
     /// # Safety
     /// The CPU must support AVX-512F.
     #[inline(always)]
-    unsafe fn row_step_avx512(
+    unsafe fn row_alpha_avx512(
         s: &crate::project::Splat2D<Self>,
         x0: usize,
         py: Self,
-        live: u32,
+        alpha: &mut [Self; 16],
+    ) -> u32 {
+        crate::raster::row_alpha(s, x0, py, alpha)
+    }
+    /// [`crate::raster::row_take`] compiled for AVX-512.
+    ///
+    /// # Safety
+    /// The CPU must support AVX-512F.
+    #[inline(always)]
+    unsafe fn row_take_avx512(
+        alpha: &[Self; 16],
+        valid: u32,
         trow: &mut [Self; 16],
         w: &mut [Self; 16],
     ) -> (u32, u32) {
-        crate::raster::row_step(s, x0, py, live, trow, w)
+        crate::raster::row_take(alpha, valid, trow, w)
     }
 }
 
@@ -180,21 +185,34 @@ impl_real!(
         simd::blend_back_f32(local, dp, feat, rec, w, alpha, one_m)
     },
     #[inline(always)]
-    unsafe fn row_step_avx512(
+    unsafe fn row_alpha_avx512(
         s: &crate::project::Splat2D<f32>,
         x0: usize,
         py: f32,
-        live: u32,
+        alpha: &mut [f32; 16],
+    ) -> u32 {
+        #[cfg(target_arch = "x86_64")]
+        {
+            // SAFETY: the caller guarantees AVX-512F.
+            unsafe { simd::row_alpha_avx512(s, x0, py, alpha) }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        crate::raster::row_alpha(s, x0, py, alpha)
+    },
+    #[inline(always)]
+    unsafe fn row_take_avx512(
+        alpha: &[f32; 16],
+        valid: u32,
         trow: &mut [f32; 16],
         w: &mut [f32; 16],
     ) -> (u32, u32) {
         #[cfg(target_arch = "x86_64")]
         {
             // SAFETY: the caller guarantees AVX-512F.
-            unsafe { simd::row_step_avx512(s, x0, py, live, trow, w) }
+            unsafe { simd::row_take_avx512(alpha, valid, trow, w) }
         }
         #[cfg(not(target_arch = "x86_64"))]
-        crate::raster::row_step(s, x0, py, live, trow, w)
+        crate::raster::row_take(alpha, valid, trow, w)
     },
     #[inline(always)]
     unsafe fn blend_back_avx2(
@@ -231,19 +249,17 @@ impl_real!(
 /// they need no runtime check; inside the AVX2-compiled band kernels the compiler may widen
 /// them). Other targets use the scalar loops.
 mod simd {
-    /// One Gaussian on one 16-pixel tile row in a single 16-lane AVX-512 pass: the same
-    /// operations in the same order as [`crate::raster::row_step`] (and the same exp
+    /// One Gaussian's alphas on one 16-pixel tile row in a single 16-lane AVX-512 pass: the
+    /// same operations in the same order as [`crate::raster::row_alpha`] (and the same exp
     /// polynomial as [`super::exp_f32`]), so results are bit-identical to the portable path.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f")]
-    pub unsafe fn row_step_avx512(
+    pub unsafe fn row_alpha_avx512(
         s: &crate::project::Splat2D<f32>,
         x0: usize,
         py: f32,
-        live: u32,
-        trow: &mut [f32; 16],
-        w: &mut [f32; 16],
-    ) -> (u32, u32) {
+        out: &mut [f32; 16],
+    ) -> u32 {
         use std::arch::x86_64::*;
         let set = _mm512_set1_ps;
         let neg = |x: __m512| {
@@ -302,16 +318,30 @@ mod simd {
         let g = _mm512_mul_ps(e, scale);
         let alpha = _mm512_min_ps(_mm512_mul_ps(set(s.opacity), g), set(0.99));
         let valid = _mm512_cmp_ps_mask::<_CMP_LE_OQ>(power, _mm512_setzero_ps())
-            & _mm512_cmp_ps_mask::<_CMP_GE_OQ>(alpha, set((1.0f64 / 255.0) as f32))
-            & (live as u16);
-        if valid == 0 {
-            return (0, 0);
-        }
+            & _mm512_cmp_ps_mask::<_CMP_GE_OQ>(alpha, set((1.0f64 / 255.0) as f32));
+        // SAFETY: a 16-float store into a 16-float array.
+        unsafe { _mm512_storeu_ps(out.as_mut_ptr(), alpha) };
+        valid as u32
+    }
+
+    /// [`crate::raster::row_take`] for 16 lanes at once: exactly the per-lane arithmetic of the
+    /// portable loop.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f")]
+    pub unsafe fn row_take_avx512(
+        alpha: &[f32; 16],
+        valid: u32,
+        trow: &mut [f32; 16],
+        w: &mut [f32; 16],
+    ) -> (u32, u32) {
+        use std::arch::x86_64::*;
+        let valid = valid as u16;
         // SAFETY: 16-float loads and stores on 16-float arrays.
         unsafe {
+            let alpha = _mm512_loadu_ps(alpha.as_ptr());
             let t = _mm512_loadu_ps(trow.as_ptr());
-            let test = _mm512_mul_ps(t, _mm512_sub_ps(set(1.0), alpha));
-            let low = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(test, set(1e-4));
+            let test = _mm512_mul_ps(t, _mm512_sub_ps(_mm512_set1_ps(1.0), alpha));
+            let low = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(test, _mm512_set1_ps(1e-4));
             let added = valid & !low;
             _mm512_storeu_ps(w.as_mut_ptr(), _mm512_mul_ps(alpha, t));
             _mm512_storeu_ps(trow.as_mut_ptr(), _mm512_mask_mov_ps(t, added, test));

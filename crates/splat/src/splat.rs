@@ -134,8 +134,8 @@ impl SplatOp {
         grad: &[T],
     ) -> (Vec<T>, Vec<T>, Vec<T>) {
         let (n, c) = (self.n, self.c);
-        let mut d_geom = vec![T::ZERO; geom.len()];
-        let mut d_feat = Vec::with_capacity(feats.len());
+        let mut d_geom = crate::raster::zeros(geom.len(), T::ZERO);
+        let mut d_feat = Vec::new();
         let mut d_bg = Vec::with_capacity(bg.len());
         let mut off = 0;
         for (b, (cam, st)) in self.cameras.iter().zip(states).enumerate() {
@@ -165,7 +165,12 @@ impl SplatOp {
                     };
                     project_backward_one(&k, g, &d, out);
                 });
-            d_feat.extend_from_slice(&g2.features);
+            // The first (often only) item's gradient is kept as it is, not copied.
+            if d_feat.is_empty() {
+                d_feat = g2.features;
+            } else {
+                d_feat.extend_from_slice(&g2.features);
+            }
             d_bg.extend_from_slice(&g2.background);
         }
         (d_geom, d_feat, d_bg)
@@ -173,21 +178,37 @@ impl SplatOp {
 }
 
 impl SplatOp {
-    /// Runs the backward on host copies of `[geom, features, background, grad]` and wraps the
-    /// three gradients as tensors shaped like the op's inputs.
+    /// Runs the backward on `[geom, features, background, grad]` (borrowed from their CPU
+    /// storage when contiguous, copied otherwise, e.g. a broadcast gradient) and wraps the three
+    /// gradients as tensors shaped like the op's inputs.
     fn backward_tensors<T: Real>(
         &self,
         states: &[ItemState<T>],
-        [geom, feats, bg, grad]: [&Tensor; 4],
+        args: [&Tensor; 4],
     ) -> candle_core::Result<(Tensor, Tensor, Tensor)> {
-        let host = |t: &Tensor| t.flatten_all()?.to_vec1::<T>();
-        let (g, f, b) = self.run_backward::<T>(
-            states,
-            &host(geom)?,
-            &host(feats)?,
-            &host(bg)?,
-            &host(grad)?,
-        );
+        // Copies first, then read guards on the rest, so no lock is held while copying.
+        let mut owned: [Option<Vec<T>>; 4] = Default::default();
+        for (o, t) in owned.iter_mut().zip(args) {
+            if !t.is_contiguous() || !t.device().is_cpu() {
+                *o = Some(t.flatten_all()?.to_vec1::<T>()?);
+            }
+        }
+        let guards = args.map(|t| t.storage_and_layout());
+        let mut host: Vec<&[T]> = Vec::with_capacity(4);
+        for ((own, (storage, layout)), t) in owned.iter().zip(&guards).zip(args) {
+            host.push(match (own, &**storage) {
+                (Some(v), _) => v.as_slice(),
+                (None, candle_core::Storage::Cpu(cpu)) => slice(cpu, layout)?,
+                (None, _) => candle_core::bail!(
+                    "gagavatar-splat: gradient input {:?} is not on the CPU",
+                    t.shape()
+                ),
+            });
+        }
+        let (g, f, b) = self.run_backward::<T>(states, host[0], host[1], host[2], host[3]);
+        drop(host);
+        drop(guards);
+        let [geom, feats, bg, _] = args;
         let dev = geom.device();
         Ok((
             Tensor::from_vec(g, geom.shape(), dev)?,
