@@ -99,10 +99,16 @@ fn eval_row<T: Real>(
     T::lane_mask(&out.power, &out.alpha, T::lit(MIN_ALPHA))
 }
 
-/// One Gaussian's alphas on one tile row (all 16 lanes) and the bit mask of lanes the release
-/// would not skip (`power <= 0` and `alpha >= 1/255`).
+/// One Gaussian's alphas and exp(power) on one tile row (all 16 lanes) and the bit mask of
+/// lanes the release would not skip (`power <= 0` and `alpha >= 1/255`).
 #[inline(always)]
-pub(crate) fn row_alpha<T: Real>(s: &Splat2D<T>, x0: usize, py: T, alpha: &mut [T; TILE]) -> u32 {
+pub(crate) fn row_eval<T: Real>(
+    s: &Splat2D<T>,
+    x0: usize,
+    py: T,
+    alpha: &mut [T; TILE],
+    gexp: &mut [T; TILE],
+) -> u32 {
     let mut lanes = Lanes {
         power: [T::ZERO; TILE],
         gexp: [T::ZERO; TILE],
@@ -110,6 +116,7 @@ pub(crate) fn row_alpha<T: Real>(s: &Splat2D<T>, x0: usize, py: T, alpha: &mut [
     };
     let mask = eval_row(s, &lane_offsets(), x0, py, &mut lanes);
     *alpha = lanes.alpha;
+    *gexp = lanes.gexp;
     mask
 }
 
@@ -252,7 +259,19 @@ unsafe fn backward_band_avx2<T: Real>(
     ty: usize,
     slot: &mut [u32],
 ) -> BandGrads<T> {
-    backward_band::<T, true>(f, state, grad, ty, slot)
+    backward_band::<T, true, false>(f, state, grad, ty, slot)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2")]
+unsafe fn backward_band_avx512<T: Real>(
+    f: &Frame<T>,
+    state: &PixelState<T>,
+    grad: &[T],
+    ty: usize,
+    slot: &mut [u32],
+) -> BandGrads<T> {
+    backward_band::<T, true, true>(f, state, grad, ty, slot)
 }
 
 struct BandOut<'a, T> {
@@ -307,6 +326,7 @@ fn forward_band<T: Real, const AVX512: bool>(f: &Frame<T>, ty: usize, mut out: B
     // back, so the rounding is that of compositing the pixel on its own.
     let mut acc = vec![T::ZERO; TILE * TILE * c];
     let mut alpha = [[T::ZERO; TILE]; TILE];
+    let mut gexp = [T::ZERO; TILE];
     let mut valid = [0u32; TILE];
     for tx in 0..w.div_ceil(TILE) {
         let x0 = tx * TILE;
@@ -343,9 +363,9 @@ fn forward_band<T: Real, const AVX512: bool>(f: &Frame<T>, ty: usize, mut out: B
                     let py = T::lit((y0 + ly) as f64);
                     let a = if AVX512 {
                         // SAFETY: AVX512 = true only in the AVX-512 kernel, entered after the check.
-                        unsafe { T::row_alpha_avx512(s, x0, py, &mut alpha[ly]) }
+                        unsafe { T::row_eval_avx512(s, x0, py, &mut alpha[ly], &mut gexp) }
                     } else {
-                        row_alpha(s, x0, py, &mut alpha[ly])
+                        row_eval(s, x0, py, &mut alpha[ly], &mut gexp)
                     };
                     a & !row_done[ly] & FULL_ROW
                 };
@@ -420,17 +440,23 @@ pub fn backward<T: Real>(f: &Frame<T>, state: &PixelState<T>, grad: &[T], n: usi
     let c = f.channels;
     let stride = c + SCREEN;
     let avx2 = has_avx2();
+    let avx512 = avx2 && has_avx512();
     let band_grads: Vec<BandGrads<T>> = (0..f.bins.bands.len())
         .into_par_iter()
         .map_init(
             || vec![0u32; n],
             |slot, ty| {
                 #[cfg(target_arch = "x86_64")]
+                if avx512 {
+                    // SAFETY: the CPU supports AVX-512F and AVX2 (checked above).
+                    return unsafe { backward_band_avx512(f, state, grad, ty, slot) };
+                }
+                #[cfg(target_arch = "x86_64")]
                 if avx2 {
                     // SAFETY: the CPU supports AVX2 (checked by has_avx2).
                     return unsafe { backward_band_avx2(f, state, grad, ty, slot) };
                 }
-                backward_band::<T, false>(f, state, grad, ty, slot)
+                backward_band::<T, false, false>(f, state, grad, ty, slot)
             },
         )
         .collect();
@@ -475,7 +501,7 @@ pub fn backward<T: Real>(f: &Frame<T>, state: &PixelState<T>, grad: &[T], n: usi
 }
 
 #[inline(always)]
-fn backward_band<T: Real, const AVX2: bool>(
+fn backward_band<T: Real, const AVX2: bool, const AVX512: bool>(
     f: &Frame<T>,
     state: &PixelState<T>,
     grad: &[T],
@@ -486,7 +512,6 @@ fn backward_band<T: Real, const AVX2: bool>(
     let stride = c + SCREEN;
     let plane = h * w;
     let band = &f.bins.bands[ty];
-    let lane_x = lane_offsets::<T>();
     let mut ids = band.ids.clone();
     ids.sort_unstable();
     ids.dedup();
@@ -503,11 +528,9 @@ fn backward_band<T: Real, const AVX2: bool>(
     let mut t_final = [T::ZERO; TILE * TILE];
     let mut bg_dot = [T::ZERO; TILE * TILE];
     let mut local = vec![T::ZERO; stride];
-    let mut lanes = Lanes {
-        power: [T::ZERO; TILE],
-        gexp: [T::ZERO; TILE],
-        alpha: [T::ZERO; TILE],
-    };
+    let mut ralpha = [[T::ZERO; TILE]; TILE];
+    let mut rgexp = [[T::ZERO; TILE]; TILE];
+    let mut rmask = [0u32; TILE];
     let max_alpha = T::lit(MAX_ALPHA);
     let half = T::lit(0.5);
     for tx in 0..w.div_ceil(TILE) {
@@ -562,13 +585,29 @@ fn backward_band<T: Real, const AVX2: bool>(
             let feat = &f.features[g * c..(g + 1) * c];
             local.iter_mut().for_each(|v| *v = T::ZERO);
             let mut touched = false;
+            // All rows' alphas first (independent of each other, so they overlap), then the
+            // per-pixel work.
             for ly in ry0..=ry1 {
-                if k as u32 >= row_max[ly] {
+                rmask[ly] = if k as u32 >= row_max[ly] {
+                    0
+                } else {
+                    let py = T::lit((y0 + ly) as f64);
+                    let m = if AVX512 {
+                        // SAFETY: AVX512 = true only in the AVX-512 kernel, entered after the check.
+                        unsafe { T::row_eval_avx512(s, x0, py, &mut ralpha[ly], &mut rgexp[ly]) }
+                    } else {
+                        row_eval(s, x0, py, &mut ralpha[ly], &mut rgexp[ly])
+                    };
+                    m & cols
+                };
+            }
+            for ly in ry0..=ry1 {
+                let mut mask = rmask[ly];
+                if mask == 0 {
                     continue;
                 }
                 let py = T::lit((y0 + ly) as f64);
                 let dy = s.my - py;
-                let mut mask = eval_row(s, &lane_x, x0, py, &mut lanes) & cols;
                 while mask != 0 {
                     let lx = mask.trailing_zeros() as usize;
                     mask &= mask - 1;
@@ -576,9 +615,9 @@ fn backward_band<T: Real, const AVX2: bool>(
                     if k as u32 >= ncon[p] {
                         continue;
                     }
-                    let alpha = lanes.alpha[lx];
+                    let alpha = ralpha[ly][lx];
                     touched = true;
-                    let gexp = lanes.gexp[lx];
+                    let gexp = rgexp[ly][lx];
                     let dx = s.mx - T::lit((x0 + lx) as f64);
                     let one_m = T::ONE - alpha;
                     // Transmittance in front of this Gaussian, recovered back to front.

@@ -101,18 +101,19 @@ pub trait Real:
     ) -> Self {
         Self::blend_back(local, dp, feat, rec, w, alpha, one_m)
     }
-    /// [`crate::raster::row_alpha`] compiled for AVX-512.
+    /// [`crate::raster::row_eval`] compiled for AVX-512.
     ///
     /// # Safety
     /// The CPU must support AVX-512F.
     #[inline(always)]
-    unsafe fn row_alpha_avx512(
+    unsafe fn row_eval_avx512(
         s: &crate::project::Splat2D<Self>,
         x0: usize,
         py: Self,
         alpha: &mut [Self; 16],
+        gexp: &mut [Self; 16],
     ) -> u32 {
-        crate::raster::row_alpha(s, x0, py, alpha)
+        crate::raster::row_eval(s, x0, py, alpha, gexp)
     }
     /// [`crate::raster::row_take`] compiled for AVX-512.
     ///
@@ -185,19 +186,20 @@ impl_real!(
         simd::blend_back_f32(local, dp, feat, rec, w, alpha, one_m)
     },
     #[inline(always)]
-    unsafe fn row_alpha_avx512(
+    unsafe fn row_eval_avx512(
         s: &crate::project::Splat2D<f32>,
         x0: usize,
         py: f32,
         alpha: &mut [f32; 16],
+        gexp: &mut [f32; 16],
     ) -> u32 {
         #[cfg(target_arch = "x86_64")]
         {
             // SAFETY: the caller guarantees AVX-512F.
-            unsafe { simd::row_alpha_avx512(s, x0, py, alpha) }
+            unsafe { simd::row_eval_avx512(s, x0, py, alpha, gexp) }
         }
         #[cfg(not(target_arch = "x86_64"))]
-        crate::raster::row_alpha(s, x0, py, alpha)
+        crate::raster::row_eval(s, x0, py, alpha, gexp)
     },
     #[inline(always)]
     unsafe fn row_take_avx512(
@@ -249,16 +251,17 @@ impl_real!(
 /// they need no runtime check; inside the AVX2-compiled band kernels the compiler may widen
 /// them). Other targets use the scalar loops.
 mod simd {
-    /// One Gaussian's alphas on one 16-pixel tile row in a single 16-lane AVX-512 pass: the
-    /// same operations in the same order as [`crate::raster::row_alpha`] (and the same exp
+    /// One Gaussian's alphas and exp(power) on one 16-pixel tile row in a single 16-lane AVX-512 pass: the
+    /// same operations in the same order as [`crate::raster::row_eval`] (and the same exp
     /// polynomial as [`super::exp_f32`]), so results are bit-identical to the portable path.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f")]
-    pub unsafe fn row_alpha_avx512(
+    pub unsafe fn row_eval_avx512(
         s: &crate::project::Splat2D<f32>,
         x0: usize,
         py: f32,
         out: &mut [f32; 16],
+        gexp: &mut [f32; 16],
     ) -> u32 {
         use std::arch::x86_64::*;
         let set = _mm512_set1_ps;
@@ -319,8 +322,11 @@ mod simd {
         let alpha = _mm512_min_ps(_mm512_mul_ps(set(s.opacity), g), set(0.99));
         let valid = _mm512_cmp_ps_mask::<_CMP_LE_OQ>(power, _mm512_setzero_ps())
             & _mm512_cmp_ps_mask::<_CMP_GE_OQ>(alpha, set((1.0f64 / 255.0) as f32));
-        // SAFETY: a 16-float store into a 16-float array.
-        unsafe { _mm512_storeu_ps(out.as_mut_ptr(), alpha) };
+        // SAFETY: 16-float stores into 16-float arrays.
+        unsafe {
+            _mm512_storeu_ps(out.as_mut_ptr(), alpha);
+            _mm512_storeu_ps(gexp.as_mut_ptr(), g);
+        }
         valid as u32
     }
 
