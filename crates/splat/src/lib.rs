@@ -12,6 +12,7 @@ pub mod error;
 pub mod project;
 pub mod raster;
 pub mod real;
+pub mod rng;
 pub mod scene;
 pub mod splat;
 pub mod testscene;

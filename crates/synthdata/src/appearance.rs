@@ -477,7 +477,7 @@ fn pick_jitter(rng: &mut Rng, palette: &[[f32; 3]], amount: f64) -> [f32; 3] {
 }
 
 fn jitter(rng: &mut Rng, c: [f32; 3], amount: f64) -> [f32; 3] {
-    c.map(|x| (x as f64 + rng.uniform_in(-amount, amount)).clamp(0.0, 1.0) as f32)
+    c.map(|x| (x as f64 + rng.range(-amount, amount)).clamp(0.0, 1.0) as f32)
 }
 
 impl Appearance {
@@ -494,14 +494,14 @@ impl Appearance {
         let hairline = if bald {
             1.2
         } else {
-            rng.uniform_in(0.15, 0.55) as f32
+            rng.range(0.15, 0.55) as f32
         };
         let long = rng.uniform() < 0.4;
         let mouth_y = anchors.mouth_centre[1];
         let hair_back = if long {
-            mouth_y - rng.uniform_in(1.0, 2.5) as f32
+            mouth_y - rng.range(1.0, 2.5) as f32
         } else {
-            mouth_y + rng.uniform_in(-0.3, 0.6) as f32
+            mouth_y + rng.range(-0.3, 0.6) as f32
         };
         let brow_colour = if rng.uniform() < 0.7 {
             scale3(hair, 0.7)
@@ -511,38 +511,38 @@ impl Appearance {
         let lips = if rng.uniform() < 0.3 {
             pick_jitter(rng, &LIPSTICK, 0.04)
         } else {
-            let base = mix(skin, [0.72, 0.28, 0.30], rng.uniform_in(0.35, 0.6) as f32);
+            let base = mix(skin, [0.72, 0.28, 0.30], rng.range(0.35, 0.6) as f32);
             jitter(rng, base, 0.03)
         };
         let pattern = match (rng.uniform() * 5.0) as usize {
             0 => Pattern::None,
             1 => Pattern::Freckles {
-                density: rng.uniform_in(0.25, 0.6) as f32,
+                density: rng.range(0.25, 0.6) as f32,
                 colour: mix(skin, [0.35, 0.18, 0.08], 0.55),
             },
             2 => Pattern::Spots {
-                cell: rng.uniform_in(0.22, 0.4) as f32,
-                density: rng.uniform_in(0.3, 0.6) as f32,
+                cell: rng.range(0.22, 0.4) as f32,
+                density: rng.range(0.3, 0.6) as f32,
                 colour: pick_jitter(rng, &VIVID_HAIR, 0.1),
             },
             3 => {
-                let a = rng.uniform_in(-1.2, 1.2);
+                let a = rng.range(-1.2, 1.2);
                 Pattern::Stripes {
                     direction: [a.cos() as f32, a.sin() as f32, 0.0],
-                    period: rng.uniform_in(0.25, 0.5) as f32,
+                    period: rng.range(0.25, 0.5) as f32,
                     colour: pick_jitter(rng, &VIVID_HAIR, 0.1),
                 }
             }
             _ => Pattern::Freckles {
-                density: rng.uniform_in(0.1, 0.3) as f32,
+                density: rng.range(0.1, 0.3) as f32,
                 colour: mix(skin, [0.3, 0.15, 0.07], 0.4),
             },
         };
         let n_moles = (rng.uniform() * 4.0) as usize;
         let moles = (0..n_moles)
             .map(|_| {
-                let x = rng.uniform_in(-1.3, 1.3) as f32;
-                let y = rng.uniform_in(mouth_y as f64 - 0.6, 0.9) as f32;
+                let x = rng.range(-1.3, 1.3) as f32;
+                let y = rng.range(mouth_y as f64 - 0.6, 0.9) as f32;
                 // On the surface: the nearest template vertex in (x, y) on the front.
                 let p = anchors
                     .canonical
@@ -556,36 +556,36 @@ impl Appearance {
                     })
                     .map(|(c, _)| *c)
                     .unwrap_or([x, y, 0.0]);
-                (p, rng.uniform_in(0.025, 0.05) as f32)
+                (p, rng.range(0.025, 0.05) as f32)
             })
             .collect();
-        let lx = rng.uniform_in(-0.7, 0.7);
-        let ly = rng.uniform_in(0.2, 0.9);
+        let lx = rng.range(-0.7, 0.7);
+        let ly = rng.range(0.2, 0.9);
         let l = [lx, ly, 1.0];
         let ln = (l[0] * l[0] + l[1] * l[1] + l[2] * l[2]).sqrt();
         Self {
             skin,
-            skin_variation: rng.uniform_in(0.03, 0.1) as f32,
-            blush: rng.uniform_in(0.0, 0.25) as f32,
+            skin_variation: rng.range(0.03, 0.1) as f32,
+            blush: rng.range(0.0, 0.25) as f32,
             hair,
             hairline,
             hair_back,
-            temple: rng.uniform_in(0.7, 1.1) as f32,
-            streaks: rng.uniform_in(8.0, 20.0) as f32,
+            temple: rng.range(0.7, 1.1) as f32,
+            streaks: rng.range(8.0, 20.0) as f32,
             brow_colour,
-            brow_thickness: rng.uniform_in(0.05, 0.1) as f32,
+            brow_thickness: rng.range(0.05, 0.1) as f32,
             iris: pick_jitter(rng, &IRIS, 0.04),
-            iris_angle: rng.uniform_in(0.5, 0.7) as f32,
+            iris_angle: rng.range(0.5, 0.7) as f32,
             lips,
             beard: if rng.uniform() < 0.25 {
-                rng.uniform_in(0.3, 0.8) as f32
+                rng.range(0.3, 0.8) as f32
             } else {
                 0.0
             },
             pattern,
             moles,
             light: l.map(|x| (x / ln) as f32),
-            ambient: rng.uniform_in(0.3, 0.45) as f32,
+            ambient: rng.range(0.3, 0.45) as f32,
             noise_seed: (rng.next_u64() >> 32) as u32,
         }
     }

@@ -16,47 +16,7 @@ use gagavatar_splat::Camera;
 
 use crate::error::{config_err, Result};
 
-/// SplitMix64: tiny, fully specified, so a seed means the same data on every machine.
-#[derive(Debug, Clone)]
-pub struct Rng(u64);
-
-impl Rng {
-    /// A stream for a seed and a path of stream ids (e.g. `[tag, identity, frame]`); distinct
-    /// paths give independent streams.
-    pub fn stream(seed: u64, ids: &[u64]) -> Self {
-        let mut r = Rng(seed ^ 0x6A09_E667_F3BC_C908);
-        for &id in ids {
-            let mixed = r.next_u64() ^ id.wrapping_mul(0xD1B5_4A32_D192_ED03);
-            r = Rng(mixed);
-            r.next_u64();
-        }
-        r
-    }
-
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in [0, 1).
-    pub fn uniform(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-
-    pub fn uniform_in(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * self.uniform()
-    }
-
-    /// Standard normal (Box-Muller).
-    pub fn normal(&mut self) -> f64 {
-        let u1 = self.uniform().max(1e-300);
-        let u2 = self.uniform();
-        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-    }
-}
+pub use gagavatar_splat::rng::Rng;
 
 /// Stream tags, so identity, appearance and frame streams never overlap.
 pub(crate) const TAG_SHAPE: u64 = 1;
@@ -212,13 +172,11 @@ pub fn sample_frame(
     let gaze_pitch = f32_exact(clamp(s * cfg.eye_sigma * rng.normal(), 3.0 * cfg.eye_sigma));
     let gaze_yaw = f32_exact(clamp(s * cfg.eye_sigma * rng.normal(), 3.0 * cfg.eye_sigma));
     let eye = [gaze_pitch, gaze_yaw, 0.0, gaze_pitch, gaze_yaw, 0.0];
-    let yaw = s * rng
-        .uniform_in(-cfg.yaw_max_deg, cfg.yaw_max_deg)
-        .to_radians();
+    let yaw = s * rng.range(-cfg.yaw_max_deg, cfg.yaw_max_deg).to_radians();
     let pitch = s * rng
-        .uniform_in(-cfg.pitch_max_deg, cfg.pitch_max_deg)
+        .range(-cfg.pitch_max_deg, cfg.pitch_max_deg)
         .to_radians();
-    let distance = rng.uniform_in(cfg.distance.0, cfg.distance.1);
+    let distance = rng.range(cfg.distance.0, cfg.distance.1);
     let mut tm = Camera::look_at_origin_matrix(distance, std::f64::consts::PI + yaw, pitch);
     tm[0][3] += cfg.shift_sigma * rng.normal();
     tm[1][3] += cfg.shift_sigma * rng.normal();

@@ -13,20 +13,10 @@ use std::time::Duration;
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarBuilder;
 use criterion::{criterion_group, criterion_main, Criterion};
+use gagavatar_splat::rng::Rng;
 use gagavatar_train::metrics::{psnr, ssim, ssim_gray};
 use gagavatar_train::nearest::{lifting_loss, KdTree};
 use gagavatar_train::perceptual::{seeded_weights, PerceptualLoss};
-
-struct Rng(u64);
-impl Rng {
-    fn uniform(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
-    }
-}
 
 fn lifted_like(rng: &mut Rng) -> Vec<[f32; 3]> {
     let s = 296;
@@ -62,7 +52,7 @@ fn head_like(rng: &mut Rng, n: usize) -> Vec<[f32; 3]> {
 
 fn bench(c: &mut Criterion) {
     let dev = Device::Cpu;
-    let mut rng = Rng(1);
+    let mut rng = Rng::from_state(1);
 
     {
         let a = Tensor::rand(0f32, 1.0, (1, 3, 512, 512), &dev).unwrap();

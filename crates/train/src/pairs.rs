@@ -26,6 +26,7 @@ use candle_core::{Device, Tensor};
 use gagavatar_data::{group_by_video, Dataset};
 use gagavatar_flame::{FlameModel, TrackedFrame};
 use gagavatar_ops::{resize, ResizeMode};
+use gagavatar_splat::rng::Rng;
 use image::RgbImage;
 
 use crate::run_error::{RunError, RunResult};
@@ -41,31 +42,6 @@ pub fn splitmix(mut z: u64) -> u64 {
 /// An independent stream id for `(a, b)`.
 pub fn mix(a: u64, b: u64) -> u64 {
     splitmix(splitmix(a) ^ b.wrapping_mul(0xD1B5_4A32_D192_ED03))
-}
-
-/// A small seeded generator (SplitMix64).
-#[derive(Debug, Clone)]
-pub struct Rng(u64);
-
-impl Rng {
-    pub fn new(seed: u64) -> Self {
-        Self(seed)
-    }
-
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        splitmix(self.0)
-    }
-
-    /// Uniform in `0..n` (`n > 0`), by 128-bit multiply (bias below 2^-32 for any `n` here).
-    pub fn below(&mut self, n: usize) -> usize {
-        ((self.next_u64() as u128 * n as u128) >> 64) as usize
-    }
-
-    /// Uniform in [0, 1).
-    pub fn unit(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
 }
 
 /// Stream salts, so the target order, the source choice and anything later never share values.
@@ -168,7 +144,7 @@ impl PairSampler {
         }
         let n = self.targets.len();
         let mut order: Vec<u32> = (0..n as u32).collect();
-        let mut rng = Rng::new(mix(mix(self.seed, SALT_EPOCH), e));
+        let mut rng = Rng::from_state(mix(mix(self.seed, SALT_EPOCH), e));
         for i in (1..n).rev() {
             let j = rng.below(i + 1);
             order.swap(i, j);
@@ -187,8 +163,8 @@ impl PairSampler {
                 let order = self.epoch_order(k / n);
                 let (v, f) = self.targets[order[(k % n) as usize] as usize];
                 let frames = &self.videos[v as usize];
-                let mut rng = Rng::new(mix(mix(self.seed, SALT_SOURCE), k));
-                let source = if self.cross_identity > 0.0 && rng.unit() < self.cross_identity {
+                let mut rng = Rng::from_state(mix(mix(self.seed, SALT_SOURCE), k));
+                let source = if self.cross_identity > 0.0 && rng.uniform() < self.cross_identity {
                     let mut u = rng.below(self.videos.len() - 1);
                     if u >= v as usize {
                         u += 1;
