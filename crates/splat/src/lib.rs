@@ -9,6 +9,7 @@
 pub mod binning;
 pub mod camera;
 pub mod error;
+pub mod lanes;
 pub mod project;
 pub mod raster;
 pub mod real;

@@ -8,6 +8,9 @@
 //! do not depend on the thread count or on the SIMD path taken.
 
 use crate::binning::Bins;
+#[cfg(target_arch = "x86_64")]
+use crate::lanes::Z16;
+use crate::lanes::{first, Lanes, Mask, ALL, P16, WIDTH};
 use crate::project::{Projected, Splat2D, TILE};
 use crate::real::Real;
 use rayon::prelude::*;
@@ -18,8 +21,6 @@ pub const MAX_ALPHA: f64 = 0.99;
 pub const MIN_ALPHA: f64 = 1.0 / 255.0;
 /// A pixel stops before a Gaussian would take its transmittance below this.
 pub const MIN_TRANSMITTANCE: f64 = 1e-4;
-/// Bit mask of a whole row of tile pixels.
-const FULL_ROW: u32 = (1 << TILE) - 1;
 /// Gaussian slots per reduction chunk in the backward.
 const REDUCE_CHUNK: usize = 4096;
 /// Screen-space gradient entries per Gaussian: mean x, mean y, conic A, B, C, opacity.
@@ -46,7 +47,7 @@ pub struct Frame<'a, T> {
 
 /// Tile-local inclusive row range where the Gaussian can reach alpha >= 1/255.
 #[inline(always)]
-fn row_range<T: Real>(s: &Splat2D<T>, y0: usize, th: usize) -> Option<(usize, usize)> {
+pub(crate) fn row_range<T: Real>(s: &Splat2D<T>, y0: usize, th: usize) -> Option<(usize, usize)> {
     let cut = s.cut.as_f64();
     if !(cut > 0.0) {
         return None;
@@ -57,96 +58,6 @@ fn row_range<T: Real>(s: &Splat2D<T>, y0: usize, th: usize) -> Option<(usize, us
     let lo = (my - ey).ceil().max(0.0);
     let hi = (my + ey).floor().min(th as f64 - 1.0);
     (lo <= hi).then_some((lo as usize, hi as usize))
-}
-
-/// Power, exp(power) and alpha of one Gaussian for the 16 pixels of a tile row.
-struct Lanes<T> {
-    power: [T; TILE],
-    gexp: [T; TILE],
-    alpha: [T; TILE],
-}
-
-/// 0, 1, ..., 15 as floats: pixel x = tile origin + lane offset (exact for integers).
-#[inline(always)]
-fn lane_offsets<T: Real>() -> [T; TILE] {
-    std::array::from_fn(|i| T::lit(i as f64))
-}
-
-/// Fills `out` for one row and returns the bit mask of lanes the release would not skip
-/// (`power <= 0` and `alpha >= 1/255`).
-#[inline(always)]
-fn eval_row<T: Real>(
-    s: &Splat2D<T>,
-    lane_x: &[T; TILE],
-    x0: usize,
-    py: T,
-    out: &mut Lanes<T>,
-) -> u32 {
-    let dy = s.my - py;
-    let cdy = s.cc * dy * dy;
-    let bdy = s.cb * dy;
-    let base = T::lit(x0 as f64);
-    let half = T::lit(0.5);
-    let max_alpha = T::lit(MAX_ALPHA);
-    for i in 0..TILE {
-        let dx = s.mx - (base + lane_x[i]);
-        let power = -(half * (s.ca * dx * dx + cdy)) - bdy * dx;
-        let g = power.fexp();
-        out.power[i] = power;
-        out.gexp[i] = g;
-        out.alpha[i] = (s.opacity * g).fmin(max_alpha);
-    }
-    T::lane_mask(&out.power, &out.alpha, T::lit(MIN_ALPHA))
-}
-
-/// One Gaussian's alphas and exp(power) on one tile row (all 16 lanes) and the bit mask of
-/// lanes the release would not skip (`power <= 0` and `alpha >= 1/255`).
-#[inline(always)]
-pub(crate) fn row_eval<T: Real>(
-    s: &Splat2D<T>,
-    x0: usize,
-    py: T,
-    alpha: &mut [T; TILE],
-    gexp: &mut [T; TILE],
-) -> u32 {
-    let mut lanes = Lanes {
-        power: [T::ZERO; TILE],
-        gexp: [T::ZERO; TILE],
-        alpha: [T::ZERO; TILE],
-    };
-    let mask = eval_row(s, &lane_offsets(), x0, py, &mut lanes);
-    *alpha = lanes.alpha;
-    *gexp = lanes.gexp;
-    mask
-}
-
-/// Advances the transmittance of the lanes in `valid` exactly as the release does per pixel.
-/// Returns the bit masks of lanes that took the Gaussian (their weight alpha*T is in `w`) and
-/// of lanes that stopped before it (T would have dropped below 1e-4).
-#[inline(always)]
-pub(crate) fn row_take<T: Real>(
-    alpha: &[T; TILE],
-    valid: u32,
-    trow: &mut [T; TILE],
-    w: &mut [T; TILE],
-) -> (u32, u32) {
-    let min_t = T::lit(MIN_TRANSMITTANCE);
-    let (mut added, mut stopped) = (0u32, 0u32);
-    let mut mask = valid;
-    while mask != 0 {
-        let lx = mask.trailing_zeros() as usize;
-        mask &= mask - 1;
-        let t = trow[lx];
-        let test_t = t * (T::ONE - alpha[lx]);
-        if test_t < min_t {
-            stopped |= 1 << lx;
-            continue;
-        }
-        w[lx] = alpha[lx] * t;
-        trow[lx] = test_t;
-        added |= 1 << lx;
-    }
-    (added, stopped)
 }
 
 /// `n` copies of `zero`, written rather than calloc'ed. Reading a calloc'ed page maps the
@@ -205,79 +116,138 @@ fn band_slices<T>(
     out
 }
 
-/// True when the band kernels can run compiled for AVX2 (wider vectors for the lane loops and
-/// the channel accumulation). Rust never contracts a*b+c into an FMA, so both paths round
-/// identically and results are bit-identical either way.
-#[inline]
-fn has_avx2() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::arch::is_x86_feature_detected!("avx2")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
+/// Which compilation of the band kernels runs.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Path {
+    /// f32 in AVX-512 registers ([`Z16`]).
+    Avx512,
+    /// Plain arrays, compiled with AVX2 enabled.
+    Avx2,
+    /// Plain arrays, baseline instructions.
+    Portable,
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn forward_band_avx2<T: Real>(f: &Frame<T>, ty: usize, out: BandOut<T>) {
-    forward_band::<T, false>(f, ty, out)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx2")]
-unsafe fn forward_band_avx512<T: Real>(f: &Frame<T>, ty: usize, out: BandOut<T>) {
-    forward_band::<T, true>(f, ty, out)
-}
-
-/// Whether the 16-lane AVX-512 row kernel can run (it is bit-identical to the portable one).
-#[inline]
-fn has_avx512() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::arch::is_x86_feature_detected!("avx512f") && !simd_disabled()
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
-}
-
-/// `GAGAVATAR_NO_AVX512=1` forces the portable row kernel (to compare paths or debug).
+/// `GAGAVATAR_NO_AVX512=1` forces the array kernels (to compare paths or debug).
 fn simd_disabled() -> bool {
     std::env::var_os("GAGAVATAR_NO_AVX512").is_some_and(|v| v != "0")
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn backward_band_avx2<T: Real>(
-    f: &Frame<T>,
-    state: &PixelState<T>,
-    grad: &[T],
-    ty: usize,
-    slot: &mut [u32],
-) -> BandGrads<T> {
-    backward_band::<T, true, false>(f, state, grad, ty, slot)
+fn path<T: Real>() -> Path {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let f32 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>();
+        if f32 && std::arch::is_x86_feature_detected!("avx512f") && !simd_disabled() {
+            return Path::Avx512;
+        }
+        if std::arch::is_x86_feature_detected!("avx2") {
+            return Path::Avx2;
+        }
+    }
+    Path::Portable
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx2")]
-unsafe fn backward_band_avx512<T: Real>(
-    f: &Frame<T>,
-    state: &PixelState<T>,
-    grad: &[T],
-    ty: usize,
-    slot: &mut [u32],
-) -> BandGrads<T> {
-    backward_band::<T, true, true>(f, state, grad, ty, slot)
+/// The frame as `Frame<f32>` when `T` is `f32`.
+fn as_f32<'a, 'b, T: Real>(f: &'b Frame<'a, T>) -> Option<&'b Frame<'a, f32>> {
+    (std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>())
+        // SAFETY: T and f32 are the same type, so the two are the same struct.
+        .then(|| unsafe { &*(f as *const Frame<'a, T>).cast::<Frame<'a, f32>>() })
 }
 
-struct BandOut<'a, T> {
+/// Features and background with the channel count rounded up to whole 16-lane blocks (zeros
+/// after the real channels); borrowed when it already is.
+struct Padded<'a, T: Clone> {
+    features: std::borrow::Cow<'a, [T]>,
+    background: std::borrow::Cow<'a, [T]>,
+    cpad: usize,
+}
+
+impl<'a, T: Real> Padded<'a, T> {
+    fn new(f: &Frame<'a, T>) -> Self {
+        let c = f.channels;
+        let cpad = c.div_ceil(WIDTH) * WIDTH;
+        if cpad == c {
+            return Self {
+                features: f.features.into(),
+                background: f.background.into(),
+                cpad,
+            };
+        }
+        let n = f.features.len() / c.max(1);
+        let mut features = zeros(n * cpad, T::ZERO);
+        for (dst, src) in features.chunks_mut(cpad).zip(f.features.chunks(c)) {
+            dst[..c].copy_from_slice(src);
+        }
+        let mut background = vec![T::ZERO; cpad];
+        background[..c].copy_from_slice(f.background);
+        Self {
+            features: features.into(),
+            background: background.into(),
+            cpad,
+        }
+    }
+}
+
+/// Powers, exp(power) and alphas of one Gaussian on one tile row (`px` holds the 16 pixel x
+/// coordinates) and the mask of lanes the release would not skip (`power <= 0` and
+/// `alpha >= 1/255`).
+#[inline(always)]
+fn eval<T: Real, L: Lanes<T>>(s: &Splat2D<T>, px: L, py: T) -> (L, L, Mask) {
+    let dy = s.my - py;
+    let cdy = s.cc * dy * dy;
+    let bdy = s.cb * dy;
+    let dx = L::splat(s.mx).sub(px);
+    let quad = L::splat(s.ca).mul(dx).mul(dx).add(L::splat(cdy));
+    let power = L::splat(T::lit(0.5))
+        .mul(quad)
+        .neg()
+        .sub(L::splat(bdy).mul(dx));
+    let g = power.exp();
+    let alpha = L::splat(s.opacity).mul(g).min(L::splat(T::lit(MAX_ALPHA)));
+    let keep = power.le(L::zero()) & alpha.ge(L::splat(T::lit(MIN_ALPHA)));
+    (alpha, g, keep)
+}
+
+/// Lists, per tile row, the tile-list positions of the Gaussians that can reach it.
+#[inline(always)]
+fn list_rows<T: Real>(f: &Frame<T>, list: &[u32], y0: usize, th: usize, rows: &mut [Vec<u32>]) {
+    for r in rows.iter_mut() {
+        r.clear();
+    }
+    for (k, &gi) in list.iter().enumerate() {
+        if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
+            prefetch(&f.proj.g, ahead as usize, 1);
+        }
+        if let Some((ry0, ry1)) = row_range(&f.proj.g[gi as usize], y0, th) {
+            for r in &mut rows[ry0..=ry1] {
+                r.push(k as u32);
+            }
+        }
+    }
+}
+
+pub(crate) struct BandOut<'a, T> {
     image: Vec<&'a mut [T]>,
     final_t: &'a mut [T],
     n_contrib: &'a mut [u32],
+}
+
+/// Forward scratch reused across the tiles of a band.
+struct FwdScratch<L> {
+    rows: [Vec<u32>; TILE],
+    /// Per Gaussian taken on the current row: its 16 weights (0 where not taken) ...
+    weights: Vec<L>,
+    /// ... and the offset of its (padded) features.
+    feat_at: Vec<usize>,
+}
+
+impl<L> FwdScratch<L> {
+    fn new() -> Self {
+        Self {
+            rows: std::array::from_fn(|_| Vec::new()),
+            weights: Vec::new(),
+            feat_at: Vec::new(),
+        }
+    }
 }
 
 /// Composites one image; returns `[C, H, W]` and the per-pixel state.
@@ -297,117 +267,146 @@ pub fn forward<T: Real>(f: &Frame<T>) -> (Vec<T>, PixelState<T>) {
             n_contrib,
         })
         .collect();
-    let avx2 = has_avx2();
-    let avx512 = avx2 && has_avx512();
-    outs.into_par_iter().enumerate().for_each(|(ty, out)| {
+    let pad = Padded::new(f);
+    match (path::<T>(), as_f32(f)) {
         #[cfg(target_arch = "x86_64")]
-        if avx512 {
-            // SAFETY: the CPU supports AVX-512F and AVX2 (checked above).
-            return unsafe { forward_band_avx512(f, ty, out) };
+        (Path::Avx512, Some(f32f)) => {
+            let pad32 = Padded::new(f32f);
+            outs.into_par_iter()
+                .enumerate()
+                .for_each_init(FwdScratch::new, |sc, (ty, out)| {
+                    // SAFETY: T is f32 (as_f32), so BandOut<T> is BandOut<f32>; the CPU has
+                    // AVX-512F (path).
+                    unsafe {
+                        let out = std::mem::transmute::<BandOut<T>, BandOut<f32>>(out);
+                        forward_band_avx512(f32f, &pad32, ty, out, sc)
+                    }
+                })
         }
         #[cfg(target_arch = "x86_64")]
-        if avx2 {
-            // SAFETY: the CPU supports AVX2 (checked by has_avx2).
-            return unsafe { forward_band_avx2(f, ty, out) };
+        (Path::Avx2, _) => {
+            outs.into_par_iter()
+                .enumerate()
+                .for_each_init(FwdScratch::new, |sc, (ty, out)| {
+                    // SAFETY: the CPU has AVX2 (path).
+                    unsafe { forward_band_avx2(f, &pad, ty, out, sc) }
+                })
         }
-        forward_band::<T, false>(f, ty, out)
-    });
+        _ => outs
+            .into_par_iter()
+            .enumerate()
+            .for_each_init(FwdScratch::new, |sc, (ty, out)| {
+                forward_band::<T, P16<T>>(f, &pad, ty, out, sc)
+            }),
+    }
     (image, PixelState { final_t, n_contrib })
 }
 
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2")]
+unsafe fn forward_band_avx512(
+    f: &Frame<f32>,
+    pad: &Padded<f32>,
+    ty: usize,
+    out: BandOut<f32>,
+    sc: &mut FwdScratch<Z16>,
+) {
+    forward_band::<f32, Z16>(f, pad, ty, out, sc)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn forward_band_avx2<T: Real>(
+    f: &Frame<T>,
+    pad: &Padded<T>,
+    ty: usize,
+    out: BandOut<T>,
+    sc: &mut FwdScratch<P16<T>>,
+) {
+    forward_band::<T, P16<T>>(f, pad, ty, out, sc)
+}
+
+/// Composites one band (a row of tiles), tile row by tile row: first every Gaussian that can
+/// reach the row takes its turn on all 16 pixels at once (alphas, the transmittance step and
+/// the weights alpha*T, 0 where a pixel skips it or has stopped), then the weighted features
+/// are summed with a 16-channel x 16-pixel block of sums held in registers.
+///
+/// Each pixel receives exactly the release's operations in the release's order: a zero weight
+/// adds an exact zero (features are finite, and a sum that starts at +0 never becomes -0).
 #[inline(always)]
-fn forward_band<T: Real, const AVX512: bool>(f: &Frame<T>, ty: usize, mut out: BandOut<T>) {
+fn forward_band<T: Real, L: Lanes<T>>(
+    f: &Frame<T>,
+    pad: &Padded<T>,
+    ty: usize,
+    out: BandOut<T>,
+    sc: &mut FwdScratch<L>,
+) {
+    let BandOut {
+        mut image,
+        final_t,
+        n_contrib,
+    } = out;
     let band = &f.bins.bands[ty];
-    let mut wrow = [T::ZERO; TILE];
     let (w, h, c) = (f.width, f.height, f.channels);
+    let (feats, bg, cpad) = (&*pad.features, &*pad.background, pad.cpad);
     let y0 = ty * TILE;
     let th = TILE.min(h - y0);
-    // Channel sums per tile pixel, [TILE * TILE][C]. Each pixel receives its Gaussians front to
-    // back, so the rounding is that of compositing the pixel on its own.
-    let mut acc = vec![T::ZERO; TILE * TILE * c];
-    let mut alpha = [[T::ZERO; TILE]; TILE];
-    let mut gexp = [T::ZERO; TILE];
-    let mut valid = [0u32; TILE];
+    let one = L::splat(T::ONE);
+    let min_t = L::splat(T::lit(MIN_TRANSMITTANCE));
     for tx in 0..w.div_ceil(TILE) {
         let x0 = tx * TILE;
         let tw = TILE.min(w - x0);
-        let npix = TILE * th;
-        acc.iter_mut().for_each(|v| *v = T::ZERO);
-        let mut tr = [T::ONE; TILE * TILE];
-        let mut last = [0u32; TILE * TILE];
-        // Columns beyond the image edge count as done from the start.
-        let edge_mask: u32 = !((1u32 << tw) - 1) & FULL_ROW;
-        let mut row_done = [edge_mask; TILE];
-        let mut ndone = (TILE - tw) * th;
+        let cols = first(tw);
         let list = band.tile(tx);
-        for (k, &gi) in list.iter().enumerate() {
-            if ndone == npix {
-                break;
-            }
-            if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
-                prefetch(&f.proj.g, ahead as usize, 1);
-                prefetch(f.features, ahead as usize * c, c);
-            }
-            let g = gi as usize;
-            let s = &f.proj.g[g];
-            let Some((ry0, ry1)) = row_range(s, y0, th) else {
-                continue;
-            };
-            let feat = &f.features[g * c..(g + 1) * c];
-            // All rows' alphas first: they do not depend on the transmittance, so these
-            // iterations overlap instead of waiting on each other's exp.
-            for ly in ry0..=ry1 {
-                valid[ly] = if row_done[ly] == FULL_ROW {
-                    0
-                } else {
-                    let py = T::lit((y0 + ly) as f64);
-                    let a = if AVX512 {
-                        // SAFETY: AVX512 = true only in the AVX-512 kernel, entered after the check.
-                        unsafe { T::row_eval_avx512(s, x0, py, &mut alpha[ly], &mut gexp) }
-                    } else {
-                        row_eval(s, x0, py, &mut alpha[ly], &mut gexp)
-                    };
-                    a & !row_done[ly] & FULL_ROW
-                };
-            }
-            for ly in ry0..=ry1 {
-                if valid[ly] == 0 {
-                    continue;
-                }
-                let trow: &mut [T; TILE] = (&mut tr[ly * TILE..(ly + 1) * TILE])
-                    .try_into()
-                    .expect("a tile row has TILE pixels");
-                let (mut added, stopped) = if AVX512 {
-                    // SAFETY: as above.
-                    unsafe { T::row_take_avx512(&alpha[ly], valid[ly], trow, &mut wrow) }
-                } else {
-                    row_take(&alpha[ly], valid[ly], trow, &mut wrow)
-                };
-                row_done[ly] |= stopped;
-                ndone += stopped.count_ones() as usize;
-                while added != 0 {
-                    let lx = added.trailing_zeros() as usize;
-                    added &= added - 1;
-                    let p = ly * TILE + lx;
-                    T::accumulate(&mut acc[p * c..(p + 1) * c], feat, wrow[lx]);
-                    last[p] = k as u32 + 1;
-                }
-            }
-        }
+        list_rows(f, list, y0, th, &mut sc.rows[..th]);
+        let px = L::iota_plus(T::lit(x0 as f64));
         for ly in 0..th {
+            let py = T::lit((y0 + ly) as f64);
+            let row = &sc.rows[ly];
+            if sc.weights.len() < row.len() {
+                sc.weights.resize(row.len(), L::zero());
+                sc.feat_at.resize(row.len(), 0);
+            }
+            let mut t = one;
+            let mut last = L::idx_zero();
+            // Columns beyond the image edge count as done from the start.
+            let mut done: Mask = !cols;
+            let mut ne = 0;
+            for &k in row {
+                if done == ALL {
+                    break;
+                }
+                let g = list[k as usize] as usize;
+                let (alpha, _, keep) = eval(&f.proj.g[g], px, py);
+                let valid = keep & !done;
+                let test = t.mul(one.sub(alpha));
+                let low = test.lt(min_t);
+                let added = valid & !low;
+                done |= valid & low;
+                // Written whether or not the Gaussian was taken (no branch to mispredict);
+                // `ne` only moves past it if it was.
+                sc.weights[ne] = L::select(added, alpha.mul(t), L::zero());
+                sc.feat_at[ne] = g * cpad;
+                ne += (added != 0) as usize;
+                t = L::select(added, test, t);
+                last = L::idx_set(added, k + 1, last);
+            }
             let o = ly * w + x0;
-            out.final_t[o..o + tw].copy_from_slice(&tr[ly * TILE..ly * TILE + tw]);
-            out.n_contrib[o..o + tw].copy_from_slice(&last[ly * TILE..ly * TILE + tw]);
-        }
-        // Plane by plane and row by row: contiguous stores (32 planes per pixel would touch 32
-        // pages at once).
-        for (ch, plane) in out.image.iter_mut().enumerate() {
-            let bg = f.background[ch];
-            for ly in 0..th {
-                let o = ly * w + x0;
-                for (lx, v) in plane[o..o + tw].iter_mut().enumerate() {
-                    let p = ly * TILE + lx;
-                    *v = acc[p * c + ch] + tr[p] * bg;
+            t.store_masked(&mut final_t[o..], cols);
+            L::idx_store_masked(last, &mut n_contrib[o..], cols);
+            for cb in (0..c).step_by(WIDTH) {
+                let mut acc = [L::zero(); WIDTH];
+                for (wv, &at) in sc.weights[..ne].iter().zip(&sc.feat_at[..ne]) {
+                    let fp = &feats[at + cb..at + cb + WIDTH];
+                    for j in 0..WIDTH {
+                        acc[j] = acc[j].add(wv.mul(L::splat(fp[j])));
+                    }
+                }
+                for j in 0..WIDTH.min(c - cb) {
+                    let ch = cb + j;
+                    acc[j]
+                        .add(t.mul(L::splat(bg[ch])))
+                        .store_masked(&mut image[ch][o..], cols);
                 }
             }
         }
@@ -431,6 +430,16 @@ struct BandGrads<T> {
     background: Vec<T>,
 }
 
+/// Backward scratch reused across the tiles of a band.
+struct BwdScratch<L> {
+    /// dL/dpixel per tile row and channel, pixels in lanes: `[row][cpad]`.
+    dpc: Vec<L>,
+    /// The same, channels in lanes: `[row][pixel][block]`.
+    dpp: Vec<L>,
+    /// Gaussian slots of this band.
+    slot: Vec<u32>,
+}
+
 /// Backward of [`forward`] given `grad` = dL/dimage `[C, H, W]`.
 ///
 /// Each band accumulates into its own compact buffer (one slot per Gaussian it touches), and
@@ -439,27 +448,58 @@ struct BandGrads<T> {
 pub fn backward<T: Real>(f: &Frame<T>, state: &PixelState<T>, grad: &[T], n: usize) -> Grads2D<T> {
     let c = f.channels;
     let stride = c + SCREEN;
-    let avx2 = has_avx2();
-    let avx512 = avx2 && has_avx512();
-    let band_grads: Vec<BandGrads<T>> = (0..f.bins.bands.len())
-        .into_par_iter()
-        .map_init(
-            || vec![0u32; n],
-            |slot, ty| {
-                #[cfg(target_arch = "x86_64")]
-                if avx512 {
-                    // SAFETY: the CPU supports AVX-512F and AVX2 (checked above).
-                    return unsafe { backward_band_avx512(f, state, grad, ty, slot) };
+    let pad = Padded::new(f);
+    let nb = pad.cpad / WIDTH;
+    let bands = 0..f.bins.bands.len();
+    let band_grads: Vec<BandGrads<T>> = match (path::<T>(), as_f32(f)) {
+        #[cfg(target_arch = "x86_64")]
+        (Path::Avx512, Some(f32f)) => {
+            let pad32 = Padded::new(f32f);
+            // SAFETY: T is f32 (as_f32), so the slices and results have the same types.
+            let (st32, grad32) = unsafe {
+                (
+                    &*(state as *const PixelState<T>).cast::<PixelState<f32>>(),
+                    std::slice::from_raw_parts(grad.as_ptr().cast::<f32>(), grad.len()),
+                )
+            };
+            let run = |sc: &mut BwdScratch<Z16>, ty: usize| -> BandGrads<f32> {
+                // SAFETY: the CPU has AVX-512F (path).
+                unsafe {
+                    match nb {
+                        1 => backward_band_avx512::<1>(f32f, &pad32, st32, grad32, ty, sc),
+                        2 => backward_band_avx512::<2>(f32f, &pad32, st32, grad32, ty, sc),
+                        3 => backward_band_avx512::<3>(f32f, &pad32, st32, grad32, ty, sc),
+                        4 => backward_band_avx512::<4>(f32f, &pad32, st32, grad32, ty, sc),
+                        _ => backward_band_avx512::<0>(f32f, &pad32, st32, grad32, ty, sc),
+                    }
                 }
-                #[cfg(target_arch = "x86_64")]
-                if avx2 {
-                    // SAFETY: the CPU supports AVX2 (checked by has_avx2).
-                    return unsafe { backward_band_avx2(f, state, grad, ty, slot) };
-                }
-                backward_band::<T, false, false>(f, state, grad, ty, slot)
-            },
-        )
-        .collect();
+            };
+            let out: Vec<BandGrads<f32>> = bands
+                .into_par_iter()
+                .map_init(|| BwdScratch::new(n), run)
+                .collect();
+            // SAFETY: T is f32.
+            unsafe { std::mem::transmute::<Vec<BandGrads<f32>>, Vec<BandGrads<T>>>(out) }
+        }
+        #[cfg(target_arch = "x86_64")]
+        (Path::Avx2, _) => bands
+            .into_par_iter()
+            .map_init(
+                || BwdScratch::new(n),
+                |sc, ty| {
+                    // SAFETY: the CPU has AVX2 (path).
+                    unsafe { backward_band_avx2(f, &pad, state, grad, ty, sc) }
+                },
+            )
+            .collect(),
+        _ => bands
+            .into_par_iter()
+            .map_init(
+                || BwdScratch::new(n),
+                |sc, ty| backward_band::<T, P16<T>, 0>(f, &pad, state, grad, ty, sc),
+            )
+            .collect(),
+    };
     let mut features = zeros(n * c, T::ZERO);
     let mut screen = zeros(n * SCREEN, T::ZERO);
     features
@@ -500,81 +540,140 @@ pub fn backward<T: Real>(f: &Frame<T>, state: &PixelState<T>, grad: &[T], n: usi
     }
 }
 
-#[inline(always)]
-fn backward_band<T: Real, const AVX2: bool, const AVX512: bool>(
+impl<L> BwdScratch<L> {
+    fn new(n: usize) -> Self {
+        Self {
+            dpc: Vec::new(),
+            dpp: Vec::new(),
+            slot: vec![0; n],
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2")]
+unsafe fn backward_band_avx512<const NB: usize>(
+    f: &Frame<f32>,
+    pad: &Padded<f32>,
+    state: &PixelState<f32>,
+    grad: &[f32],
+    ty: usize,
+    sc: &mut BwdScratch<Z16>,
+) -> BandGrads<f32> {
+    backward_band::<f32, Z16, NB>(f, pad, state, grad, ty, sc)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn backward_band_avx2<T: Real>(
     f: &Frame<T>,
+    pad: &Padded<T>,
     state: &PixelState<T>,
     grad: &[T],
     ty: usize,
-    slot: &mut [u32],
+    sc: &mut BwdScratch<P16<T>>,
+) -> BandGrads<T> {
+    backward_band::<T, P16<T>, 0>(f, pad, state, grad, ty, sc)
+}
+
+/// The backward of one band, Gaussian by Gaussian from back to front and, for each, tile row
+/// by tile row with the row's 16 pixels in lanes. The transmittance in front of each Gaussian
+/// is recovered by division, and what lies behind it enters through one running sum per pixel,
+/// `s = sum over the Gaussians behind of w_i (dL/dpixel . f_i)`:
+/// `dL/dalpha = T (dL/dpixel . f) - (s + T_final (dL/dpixel . background)) / (1 - alpha)`.
+/// The Gaussian's own sums (features, screen-space quantities) stay in registers across its
+/// rows. `NB` is the number of 16-channel blocks (0: any number, kept in memory).
+#[inline(always)]
+fn backward_band<T: Real, L: Lanes<T>, const NB: usize>(
+    f: &Frame<T>,
+    pad: &Padded<T>,
+    state: &PixelState<T>,
+    grad: &[T],
+    ty: usize,
+    sc: &mut BwdScratch<L>,
 ) -> BandGrads<T> {
     let (w, h, c) = (f.width, f.height, f.channels);
+    let (feats, bgp, cpad) = (&*pad.features, &*pad.background, pad.cpad);
+    let nb = cpad / WIDTH;
+    debug_assert!(NB == 0 || NB == nb);
     let stride = c + SCREEN;
     let plane = h * w;
     let band = &f.bins.bands[ty];
     let mut ids = band.ids.clone();
     ids.sort_unstable();
     ids.dedup();
+    let slot = &mut sc.slot;
     for (s, &g) in ids.iter().enumerate() {
         slot[g as usize] = s as u32;
     }
     let mut vals = zeros(ids.len() * stride, T::ZERO);
-    let mut bg = vec![T::ZERO; c];
+    let mut bg_acc = vec![L::zero(); nb];
     let y0 = ty * TILE;
     let th = TILE.min(h - y0);
-    let mut dpix = vec![T::ZERO; TILE * TILE * c];
-    let mut rec = vec![T::ZERO; TILE * TILE * c];
-    let mut tr = [T::ZERO; TILE * TILE];
-    let mut t_final = [T::ZERO; TILE * TILE];
-    let mut bg_dot = [T::ZERO; TILE * TILE];
-    let mut local = vec![T::ZERO; stride];
-    let mut ralpha = [[T::ZERO; TILE]; TILE];
-    let mut rgexp = [[T::ZERO; TILE]; TILE];
-    let mut rmask = [0u32; TILE];
-    let max_alpha = T::lit(MAX_ALPHA);
-    let half = T::lit(0.5);
+    sc.dpc.clear();
+    sc.dpc.resize(TILE * cpad, L::zero());
+    sc.dpp.clear();
+    sc.dpp.resize(TILE * WIDTH * nb, L::zero());
+    let (dpc, dpp) = (&mut sc.dpc, &mut sc.dpp);
+    let one = L::splat(T::ONE);
+    let half = L::splat(T::lit(0.5));
+    let max_alpha = L::splat(T::lit(MAX_ALPHA));
+    let mut dfeat_fixed = [L::zero(); NB];
+    let mut dfeat_dyn = vec![L::zero(); if NB == 0 { nb } else { 0 }];
+    let mut trow = [L::zero(); TILE];
+    let mut tfin = [L::zero(); TILE];
+    let mut srow = [L::zero(); TILE];
+    let mut bgdot = [L::zero(); TILE];
+    let mut ncon = [L::idx_zero(); TILE];
     for tx in 0..w.div_ceil(TILE) {
         let x0 = tx * TILE;
         let tw = TILE.min(w - x0);
-        let cols: u32 = (1u32 << tw) - 1;
-        let mut kmax = 0u32;
-        let mut ncon = [0u32; TILE * TILE];
-        let mut row_max = [0u32; TILE];
-        // The incoming gradient plane by plane, row by row (contiguous reads; 32 planes per
-        // pixel would touch 32 pages at once).
+        let cols = first(tw);
+        let px = L::iota_plus(T::lit(x0 as f64));
+        // The incoming gradient plane by plane, row by row (contiguous reads).
         for ch in 0..c {
             for ly in 0..th {
                 let o = ch * plane + (y0 + ly) * w + x0;
-                for (lx, &d) in grad[o..o + tw].iter().enumerate() {
-                    dpix[(ly * TILE + lx) * c + ch] = d;
-                }
+                dpc[ly * cpad + ch] = L::load_first(&grad[o..o + tw]);
             }
         }
+        let mut row_max = [0u32; TILE];
+        let mut kmax = 0;
         for ly in 0..th {
-            for lx in 0..tw {
-                let p = ly * TILE + lx;
-                let o = (y0 + ly) * w + x0 + lx;
-                let mut dot = T::ZERO;
-                for ch in 0..c {
-                    let d = dpix[p * c + ch];
-                    dot += d * f.background[ch];
-                    bg[ch] += d * state.final_t[o];
+            for j in 0..nb {
+                let blk: [[T; WIDTH]; WIDTH] =
+                    std::array::from_fn(|i| dpc[ly * cpad + j * WIDTH + i].to_array());
+                for l in 0..WIDTH {
+                    dpp[(ly * WIDTH + l) * nb + j] =
+                        L::from_array(std::array::from_fn(|i| blk[i][l]));
                 }
-                bg_dot[p] = dot;
-                tr[p] = state.final_t[o];
-                t_final[p] = state.final_t[o];
-                ncon[p] = state.n_contrib[o];
-                row_max[ly] = row_max[ly].max(ncon[p]);
-                kmax = kmax.max(ncon[p]);
+            }
+            let mut dot = L::zero();
+            for ch in 0..c {
+                dot = dot.add(dpc[ly * cpad + ch].mul(L::splat(bgp[ch])));
+            }
+            bgdot[ly] = dot;
+            let o = (y0 + ly) * w + x0;
+            let ft = &state.final_t[o..o + tw];
+            tfin[ly] = L::load_first(ft);
+            trow[ly] = tfin[ly];
+            srow[ly] = L::zero();
+            let nc = &state.n_contrib[o..o + tw];
+            ncon[ly] = L::idx_load_first(nc);
+            row_max[ly] = nc.iter().copied().max().unwrap_or(0);
+            kmax = kmax.max(row_max[ly]);
+            for (l, &t) in ft.iter().enumerate() {
+                for j in 0..nb {
+                    bg_acc[j] = bg_acc[j].add(dpp[(ly * WIDTH + l) * nb + j].mul(L::splat(t)));
+                }
             }
         }
-        rec.iter_mut().for_each(|v| *v = T::ZERO);
         let list = band.tile(tx);
         for k in (0..kmax as usize).rev() {
             if let Some(ahead) = k.checked_sub(PREFETCH_AHEAD) {
                 let ahead = list[ahead] as usize;
                 prefetch(&f.proj.g, ahead, 1);
-                prefetch(f.features, ahead * c, c);
+                prefetch(feats, ahead * cpad, c);
                 prefetch(&vals, slot[ahead] as usize * stride, stride);
             }
             let g = list[k] as usize;
@@ -582,84 +681,91 @@ fn backward_band<T: Real, const AVX2: bool, const AVX512: bool>(
             let Some((ry0, ry1)) = row_range(s, y0, th) else {
                 continue;
             };
-            let feat = &f.features[g * c..(g + 1) * c];
-            local.iter_mut().for_each(|v| *v = T::ZERO);
-            let mut touched = false;
-            // All rows' alphas first (independent of each other, so they overlap), then the
-            // per-pixel work.
-            for ly in ry0..=ry1 {
-                rmask[ly] = if k as u32 >= row_max[ly] {
-                    0
-                } else {
-                    let py = T::lit((y0 + ly) as f64);
-                    let m = if AVX512 {
-                        // SAFETY: AVX512 = true only in the AVX-512 kernel, entered after the check.
-                        unsafe { T::row_eval_avx512(s, x0, py, &mut ralpha[ly], &mut rgexp[ly]) }
-                    } else {
-                        row_eval(s, x0, py, &mut ralpha[ly], &mut rgexp[ly])
-                    };
-                    m & cols
-                };
+            let fp = &feats[g * cpad..g * cpad + c];
+            let dfeat: &mut [L] = if NB == 0 {
+                &mut dfeat_dyn
+            } else {
+                &mut dfeat_fixed
+            };
+            for d in dfeat.iter_mut() {
+                *d = L::zero();
             }
+            let mut geo = [L::zero(); SCREEN];
+            let mut touched = false;
             for ly in ry0..=ry1 {
-                let mut mask = rmask[ly];
-                if mask == 0 {
+                if k as u32 >= row_max[ly] {
                     continue;
                 }
                 let py = T::lit((y0 + ly) as f64);
-                let dy = s.my - py;
-                while mask != 0 {
-                    let lx = mask.trailing_zeros() as usize;
-                    mask &= mask - 1;
-                    let p = ly * TILE + lx;
-                    if k as u32 >= ncon[p] {
-                        continue;
-                    }
-                    let alpha = ralpha[ly][lx];
-                    touched = true;
-                    let gexp = rgexp[ly][lx];
-                    let dx = s.mx - T::lit((x0 + lx) as f64);
-                    let one_m = T::ONE - alpha;
-                    // Transmittance in front of this Gaussian, recovered back to front.
-                    let t = tr[p] / one_m;
-                    tr[p] = t;
-                    let wgt = alpha * t;
-                    let dp = &dpix[p * c..(p + 1) * c];
-                    let rc = &mut rec[p * c..(p + 1) * c];
-                    // rec = colour composited behind this Gaussian, per unit transmittance.
-                    let mut dalpha = if AVX2 {
-                        // SAFETY: AVX2 = true only in the AVX2 kernel, entered after the check.
-                        unsafe {
-                            T::blend_back_avx2(&mut local[..c], dp, feat, rc, wgt, alpha, one_m)
-                        }
-                    } else {
-                        T::blend_back(&mut local[..c], dp, feat, rc, wgt, alpha, one_m)
-                    };
-                    dalpha = dalpha * t - t_final[p] / one_m * bg_dot[p];
-                    // alpha = min(0.99, o G): no gradient where the clamp is active.
-                    if s.opacity * gexp < max_alpha {
-                        local[c + 5] += gexp * dalpha;
-                        let dpow = gexp * s.opacity * dalpha;
-                        // power = -0.5 (A dx^2 + C dy^2) - B dx dy, with d = mean - pixel.
-                        local[c] -= dpow * (s.ca * dx + s.cb * dy);
-                        local[c + 1] -= dpow * (s.cc * dy + s.cb * dx);
-                        local[c + 2] -= half * dpow * dx * dx;
-                        local[c + 3] -= dpow * dx * dy;
-                        local[c + 4] -= half * dpow * dy * dy;
+                let (alpha, gexp, keep) = eval(s, px, py);
+                let m = keep & cols & L::idx_gt(ncon[ly], k as u32);
+                if m == 0 {
+                    continue;
+                }
+                touched = true;
+                let one_m = one.sub(alpha);
+                // Transmittance in front of this Gaussian, recovered back to front.
+                let t = trow[ly].div(one_m);
+                trow[ly] = L::select(m, t, trow[ly]);
+                let wgt = L::select(m, alpha.mul(t), L::zero());
+                let dpr = &dpc[ly * cpad..ly * cpad + c];
+                let mut dot = L::zero();
+                for (d, &fv) in dpr.iter().zip(fp) {
+                    dot = dot.add(d.mul(L::splat(fv)));
+                }
+                let behind = srow[ly].add(tfin[ly].mul(bgdot[ly])).div(one_m);
+                let dalpha = dot.mul(t).sub(behind);
+                srow[ly] = L::select(m, srow[ly].add(wgt.mul(dot)), srow[ly]);
+                // dL/dfeatures = sum over pixels of w dL/dpixel; lanes outside m add exact
+                // zeros, so only the span of m is visited.
+                let wa = wgt.to_array();
+                let (lo, hi) = (m.trailing_zeros() as usize, 15 - m.leading_zeros() as usize);
+                for l in lo..=hi {
+                    let wl = L::splat(wa[l]);
+                    let dq = &dpp[(ly * WIDTH + l) * nb..(ly * WIDTH + l + 1) * nb];
+                    for (d, q) in dfeat.iter_mut().zip(dq) {
+                        *d = d.add(q.mul(wl));
                     }
                 }
+                // alpha = min(0.99, o G): no gradient where the clamp is active.
+                let cm = m & L::splat(s.opacity).mul(gexp).lt(max_alpha);
+                let dal = L::select(cm, dalpha, L::zero());
+                geo[5] = geo[5].add(gexp.mul(dal));
+                let dpow = gexp.mul(L::splat(s.opacity)).mul(dal);
+                // power = -0.5 (A dx^2 + C dy^2) - B dx dy, with d = mean - pixel.
+                let dx = L::splat(s.mx).sub(px);
+                let dy = s.my - py;
+                let dyv = L::splat(dy);
+                geo[0] = geo[0].sub(dpow.mul(L::splat(s.ca).mul(dx).add(L::splat(s.cb * dy))));
+                geo[1] = geo[1].sub(dpow.mul(L::splat(s.cc * dy).add(L::splat(s.cb).mul(dx))));
+                geo[2] = geo[2].sub(half.mul(dpow).mul(dx).mul(dx));
+                geo[3] = geo[3].sub(dpow.mul(dx).mul(dyv));
+                geo[4] = geo[4].sub(half.mul(dpow).mul(dyv).mul(dyv));
             }
             if touched {
                 let at = slot[g] as usize * stride;
-                for (v, l) in vals[at..at + stride].iter_mut().zip(&local) {
-                    *v += *l;
+                let out = &mut vals[at..at + stride];
+                for (j, d) in dfeat.iter().enumerate() {
+                    let a = d.to_array();
+                    let n = WIDTH.min(c - j * WIDTH);
+                    for (o, v) in out[j * WIDTH..j * WIDTH + n].iter_mut().zip(&a) {
+                        *o += *v;
+                    }
+                }
+                for (o, q) in out[c..].iter_mut().zip(&geo) {
+                    *o += q.hsum();
                 }
             }
         }
     }
+    let mut background = Vec::with_capacity(c);
+    for b in &bg_acc {
+        background.extend_from_slice(&b.to_array());
+    }
+    background.truncate(c);
     BandGrads {
         ids,
         vals,
-        background: bg,
+        background,
     }
 }

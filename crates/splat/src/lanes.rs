@@ -1,0 +1,438 @@
+//! 16-lane vectors for the compositing kernels: one lane per pixel of a 16-pixel tile row, or
+//! one per channel of a 16-channel block.
+//!
+//! The kernels in [`crate::raster`] are written once against [`Lanes`] and compiled twice: with
+//! [`P16`] (plain arrays, any [`Real`], vectorised by the compiler where it can) and, on CPUs with
+//! AVX-512F, with [`Z16`] (one `__m512` register, f32 only). Every operation is an IEEE
+//! operation lane by lane with the same rounding in both (Rust never fuses a*b+c, `min`/`max`
+//! and comparisons are defined identically below, and the exp is the same polynomial), so both
+//! compilations give bit-identical results.
+
+use crate::real::Real;
+
+/// Lanes per vector: the width of a tile row.
+pub const WIDTH: usize = 16;
+/// One bit per lane.
+pub type Mask = u16;
+/// Every lane.
+pub const ALL: Mask = u16::MAX;
+
+/// Mask of the first `n` lanes.
+#[inline(always)]
+pub fn first(n: usize) -> Mask {
+    if n >= WIDTH {
+        ALL
+    } else {
+        ((1u32 << n) - 1) as Mask
+    }
+}
+
+pub trait Lanes<T: Real>: Copy {
+    /// Per-lane tile-list positions.
+    type Idx: Copy;
+    fn splat(v: T) -> Self;
+    #[inline(always)]
+    fn zero() -> Self {
+        Self::splat(T::ZERO)
+    }
+    /// `base + i` in lane i.
+    fn iota_plus(base: T) -> Self;
+    /// The first `min(16, s.len())` values of `s`, zeros after.
+    fn load_first(s: &[T]) -> Self;
+    /// 16 values from `s` (which must hold at least 16).
+    fn load(s: &[T]) -> Self;
+    /// Stores the lanes in `m` to the same positions of `d` (which must hold every lane in `m`).
+    fn store_masked(self, d: &mut [T], m: Mask);
+    fn to_array(self) -> [T; WIDTH];
+    fn from_array(a: [T; WIDTH]) -> Self;
+    fn add(self, o: Self) -> Self;
+    fn sub(self, o: Self) -> Self;
+    fn mul(self, o: Self) -> Self;
+    fn div(self, o: Self) -> Self;
+    /// `self < o ? self : o` per lane (the second operand when either is NaN).
+    fn min(self, o: Self) -> Self;
+    /// `self > o ? self : o` per lane (the second operand when either is NaN).
+    fn max(self, o: Self) -> Self;
+    fn neg(self) -> Self;
+    fn le(self, o: Self) -> Mask;
+    fn lt(self, o: Self) -> Mask;
+    fn ge(self, o: Self) -> Mask;
+    /// `a` in the lanes of `m`, `b` elsewhere.
+    fn select(m: Mask, a: Self, b: Self) -> Self;
+    /// [`Real::fexp`] per lane.
+    fn exp(self) -> Self;
+    /// Sum of the lanes by halving: lanes i and i+8, then i and i+4, i+2, i+1.
+    fn hsum(self) -> T;
+    fn idx_zero() -> Self::Idx;
+    /// `k` in the lanes of `m`, `cur` elsewhere.
+    fn idx_set(m: Mask, k: u32, cur: Self::Idx) -> Self::Idx;
+    /// Lanes whose index is greater than `k`.
+    fn idx_gt(cur: Self::Idx, k: u32) -> Mask;
+    fn idx_load_first(s: &[u32]) -> Self::Idx;
+    fn idx_store_masked(cur: Self::Idx, d: &mut [u32], m: Mask);
+}
+
+/// Portable lanes: a plain array.
+#[derive(Clone, Copy, Debug)]
+pub struct P16<T>(pub [T; WIDTH]);
+
+impl<T: Real> P16<T> {
+    #[inline(always)]
+    fn map2(self, o: Self, f: impl Fn(T, T) -> T) -> Self {
+        let mut r = self.0;
+        for i in 0..WIDTH {
+            r[i] = f(self.0[i], o.0[i]);
+        }
+        P16(r)
+    }
+    #[inline(always)]
+    fn cmp(self, o: Self, f: impl Fn(T, T) -> bool) -> Mask {
+        let mut m = 0;
+        for i in 0..WIDTH {
+            m |= (f(self.0[i], o.0[i]) as Mask) << i;
+        }
+        m
+    }
+}
+
+impl<T: Real> Lanes<T> for P16<T> {
+    type Idx = [u32; WIDTH];
+    #[inline(always)]
+    fn splat(v: T) -> Self {
+        P16([v; WIDTH])
+    }
+    #[inline(always)]
+    fn iota_plus(base: T) -> Self {
+        P16(std::array::from_fn(|i| base + T::lit(i as f64)))
+    }
+    #[inline(always)]
+    fn load_first(s: &[T]) -> Self {
+        let mut r = [T::ZERO; WIDTH];
+        let n = s.len().min(WIDTH);
+        r[..n].copy_from_slice(&s[..n]);
+        P16(r)
+    }
+    #[inline(always)]
+    fn load(s: &[T]) -> Self {
+        let mut r = [T::ZERO; WIDTH];
+        r.copy_from_slice(&s[..WIDTH]);
+        P16(r)
+    }
+    #[inline(always)]
+    fn store_masked(self, d: &mut [T], m: Mask) {
+        for i in 0..WIDTH {
+            if m >> i & 1 != 0 {
+                d[i] = self.0[i];
+            }
+        }
+    }
+    #[inline(always)]
+    fn to_array(self) -> [T; WIDTH] {
+        self.0
+    }
+    #[inline(always)]
+    fn from_array(a: [T; WIDTH]) -> Self {
+        P16(a)
+    }
+    #[inline(always)]
+    fn add(self, o: Self) -> Self {
+        self.map2(o, |a, b| a + b)
+    }
+    #[inline(always)]
+    fn sub(self, o: Self) -> Self {
+        self.map2(o, |a, b| a - b)
+    }
+    #[inline(always)]
+    fn mul(self, o: Self) -> Self {
+        self.map2(o, |a, b| a * b)
+    }
+    #[inline(always)]
+    fn div(self, o: Self) -> Self {
+        self.map2(o, |a, b| a / b)
+    }
+    #[inline(always)]
+    fn min(self, o: Self) -> Self {
+        self.map2(o, |a, b| if a < b { a } else { b })
+    }
+    #[inline(always)]
+    fn max(self, o: Self) -> Self {
+        self.map2(o, |a, b| if a > b { a } else { b })
+    }
+    #[inline(always)]
+    fn neg(self) -> Self {
+        P16(self.0.map(|a| -a))
+    }
+    #[inline(always)]
+    fn le(self, o: Self) -> Mask {
+        self.cmp(o, |a, b| a <= b)
+    }
+    #[inline(always)]
+    fn lt(self, o: Self) -> Mask {
+        self.cmp(o, |a, b| a < b)
+    }
+    #[inline(always)]
+    fn ge(self, o: Self) -> Mask {
+        self.cmp(o, |a, b| a >= b)
+    }
+    #[inline(always)]
+    fn select(m: Mask, a: Self, b: Self) -> Self {
+        P16(std::array::from_fn(|i| {
+            if m >> i & 1 != 0 {
+                a.0[i]
+            } else {
+                b.0[i]
+            }
+        }))
+    }
+    #[inline(always)]
+    fn exp(self) -> Self {
+        P16(self.0.map(T::fexp))
+    }
+    #[inline(always)]
+    fn hsum(self) -> T {
+        let mut a = self.0;
+        let mut width = WIDTH / 2;
+        while width > 0 {
+            for i in 0..width {
+                a[i] += a[i + width];
+            }
+            width /= 2;
+        }
+        a[0]
+    }
+    #[inline(always)]
+    fn idx_zero() -> Self::Idx {
+        [0; WIDTH]
+    }
+    #[inline(always)]
+    fn idx_set(m: Mask, k: u32, cur: Self::Idx) -> Self::Idx {
+        std::array::from_fn(|i| if m >> i & 1 != 0 { k } else { cur[i] })
+    }
+    #[inline(always)]
+    fn idx_gt(cur: Self::Idx, k: u32) -> Mask {
+        let mut m = 0;
+        for i in 0..WIDTH {
+            m |= ((cur[i] > k) as Mask) << i;
+        }
+        m
+    }
+    #[inline(always)]
+    fn idx_load_first(s: &[u32]) -> Self::Idx {
+        let mut r = [0; WIDTH];
+        let n = s.len().min(WIDTH);
+        r[..n].copy_from_slice(&s[..n]);
+        r
+    }
+    #[inline(always)]
+    fn idx_store_masked(cur: Self::Idx, d: &mut [u32], m: Mask) {
+        for i in 0..WIDTH {
+            if m >> i & 1 != 0 {
+                d[i] = cur[i];
+            }
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+pub use avx512::Z16;
+
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    //! Every method is only ever inlined into functions compiled with AVX-512F enabled, and
+    //! only called after `is_x86_feature_detected!("avx512f")`; that is the safety argument of
+    //! each `unsafe` block below.
+
+    use super::{Lanes, Mask, WIDTH};
+    use std::arch::x86_64::*;
+
+    /// 16 f32 lanes in one AVX-512 register.
+    #[derive(Clone, Copy, Debug)]
+    pub struct Z16(__m512);
+
+    impl Lanes<f32> for Z16 {
+        type Idx = __m512i;
+        #[inline(always)]
+        fn splat(v: f32) -> Self {
+            // SAFETY: see the module comment.
+            Z16(unsafe { _mm512_set1_ps(v) })
+        }
+        #[inline(always)]
+        fn iota_plus(base: f32) -> Self {
+            // SAFETY: see the module comment.
+            unsafe {
+                let lanes = _mm512_setr_ps(
+                    0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0, 13.0, 14.0,
+                    15.0,
+                );
+                Z16(_mm512_add_ps(_mm512_set1_ps(base), lanes))
+            }
+        }
+        #[inline(always)]
+        fn load_first(s: &[f32]) -> Self {
+            let m = super::first(s.len());
+            // SAFETY: the masked load reads only the first min(16, len) elements.
+            Z16(unsafe { _mm512_maskz_loadu_ps(m, s.as_ptr()) })
+        }
+        #[inline(always)]
+        fn load(s: &[f32]) -> Self {
+            let s = &s[..WIDTH];
+            // SAFETY: 16 elements are in bounds.
+            Z16(unsafe { _mm512_loadu_ps(s.as_ptr()) })
+        }
+        #[inline(always)]
+        fn store_masked(self, d: &mut [f32], m: Mask) {
+            debug_assert!(m == 0 || d.len() > (15 - m.leading_zeros()) as usize);
+            // SAFETY: the caller passes a slice that holds every lane in m; other lanes are not
+            // written (masked stores suppress them, faults included).
+            unsafe { _mm512_mask_storeu_ps(d.as_mut_ptr(), m, self.0) }
+        }
+        #[inline(always)]
+        fn to_array(self) -> [f32; WIDTH] {
+            let mut a = [0.0; WIDTH];
+            // SAFETY: 16 floats into a 16-float array.
+            unsafe { _mm512_storeu_ps(a.as_mut_ptr(), self.0) };
+            a
+        }
+        #[inline(always)]
+        fn from_array(a: [f32; WIDTH]) -> Self {
+            Self::load(&a)
+        }
+        #[inline(always)]
+        fn add(self, o: Self) -> Self {
+            // SAFETY: see the module comment.
+            Z16(unsafe { _mm512_add_ps(self.0, o.0) })
+        }
+        #[inline(always)]
+        fn sub(self, o: Self) -> Self {
+            // SAFETY: see the module comment.
+            Z16(unsafe { _mm512_sub_ps(self.0, o.0) })
+        }
+        #[inline(always)]
+        fn mul(self, o: Self) -> Self {
+            // SAFETY: see the module comment.
+            Z16(unsafe { _mm512_mul_ps(self.0, o.0) })
+        }
+        #[inline(always)]
+        fn div(self, o: Self) -> Self {
+            // SAFETY: see the module comment.
+            Z16(unsafe { _mm512_div_ps(self.0, o.0) })
+        }
+        #[inline(always)]
+        fn min(self, o: Self) -> Self {
+            // SAFETY: see the module comment. (vminps returns the second operand when either
+            // is NaN, as P16::min does.)
+            Z16(unsafe { _mm512_min_ps(self.0, o.0) })
+        }
+        #[inline(always)]
+        fn max(self, o: Self) -> Self {
+            // SAFETY: see the module comment.
+            Z16(unsafe { _mm512_max_ps(self.0, o.0) })
+        }
+        #[inline(always)]
+        fn neg(self) -> Self {
+            // SAFETY: see the module comment. Flips the sign bit, as unary minus does.
+            Z16(unsafe {
+                _mm512_castsi512_ps(_mm512_xor_si512(
+                    _mm512_castps_si512(self.0),
+                    _mm512_set1_epi32(i32::MIN),
+                ))
+            })
+        }
+        #[inline(always)]
+        fn le(self, o: Self) -> Mask {
+            // SAFETY: see the module comment.
+            unsafe { _mm512_cmp_ps_mask::<_CMP_LE_OQ>(self.0, o.0) }
+        }
+        #[inline(always)]
+        fn lt(self, o: Self) -> Mask {
+            // SAFETY: see the module comment.
+            unsafe { _mm512_cmp_ps_mask::<_CMP_LT_OQ>(self.0, o.0) }
+        }
+        #[inline(always)]
+        fn ge(self, o: Self) -> Mask {
+            // SAFETY: see the module comment.
+            unsafe { _mm512_cmp_ps_mask::<_CMP_GE_OQ>(self.0, o.0) }
+        }
+        #[inline(always)]
+        fn select(m: Mask, a: Self, b: Self) -> Self {
+            // SAFETY: see the module comment.
+            Z16(unsafe { _mm512_mask_mov_ps(b.0, m, a.0) })
+        }
+        #[inline(always)]
+        fn exp(self) -> Self {
+            // crate::real::exp_f32, operation for operation.
+            const LOG2E: f32 = std::f32::consts::LOG2_E;
+            const LN2_HI: f32 = 0.693_359_4;
+            const LN2_LO: f32 = -2.121_944_4e-4;
+            const ROUND: f32 = 12_582_912.0;
+            let s = Self::splat;
+            let x = self.max(s(-87.0)).min(s(88.0));
+            let shifted = x.mul(s(LOG2E)).add(s(ROUND));
+            let k = shifted.sub(s(ROUND));
+            let r = x.sub(k.mul(s(LN2_HI))).sub(k.mul(s(LN2_LO)));
+            let mut p = s(1.987_569_2e-4);
+            for c in [
+                1.398_2e-3,
+                8.333_452e-3,
+                4.166_579_6e-2,
+                1.666_666_5e-1,
+                0.5,
+            ] {
+                p = p.mul(r).add(s(c));
+            }
+            let e = p.mul(r).mul(r).add(r).add(s(1.0));
+            // SAFETY: see the module comment.
+            let scale = unsafe {
+                let kbits = _mm512_sub_epi32(
+                    _mm512_castps_si512(shifted.0),
+                    _mm512_set1_epi32(ROUND.to_bits() as i32),
+                );
+                Z16(_mm512_castsi512_ps(_mm512_slli_epi32::<23>(
+                    _mm512_add_epi32(kbits, _mm512_set1_epi32(127)),
+                )))
+            };
+            e.mul(scale)
+        }
+        #[inline(always)]
+        fn hsum(self) -> f32 {
+            // SAFETY: see the module comment.
+            unsafe {
+                let v = self.0;
+                let lo = _mm512_castps512_ps256(v);
+                let hi = _mm256_castpd_ps(_mm512_extractf64x4_pd::<1>(_mm512_castps_pd(v)));
+                let a = _mm256_add_ps(lo, hi);
+                let b = _mm_add_ps(_mm256_castps256_ps128(a), _mm256_extractf128_ps::<1>(a));
+                let c = _mm_add_ps(b, _mm_movehl_ps(b, b));
+                let d = _mm_add_ss(c, _mm_shuffle_ps::<1>(c, c));
+                _mm_cvtss_f32(d)
+            }
+        }
+        #[inline(always)]
+        fn idx_zero() -> __m512i {
+            // SAFETY: see the module comment.
+            unsafe { _mm512_setzero_si512() }
+        }
+        #[inline(always)]
+        fn idx_set(m: Mask, k: u32, cur: __m512i) -> __m512i {
+            // SAFETY: see the module comment.
+            unsafe { _mm512_mask_mov_epi32(cur, m, _mm512_set1_epi32(k as i32)) }
+        }
+        #[inline(always)]
+        fn idx_gt(cur: __m512i, k: u32) -> Mask {
+            // SAFETY: see the module comment.
+            unsafe { _mm512_cmpgt_epu32_mask(cur, _mm512_set1_epi32(k as i32)) }
+        }
+        #[inline(always)]
+        fn idx_load_first(s: &[u32]) -> __m512i {
+            let m = super::first(s.len());
+            // SAFETY: the masked load reads only the first min(16, len) elements.
+            unsafe { _mm512_maskz_loadu_epi32(m, s.as_ptr() as *const i32) }
+        }
+        #[inline(always)]
+        fn idx_store_masked(cur: __m512i, d: &mut [u32], m: Mask) {
+            debug_assert!(m == 0 || d.len() > (15 - m.leading_zeros()) as usize);
+            // SAFETY: as in store_masked.
+            unsafe { _mm512_mask_storeu_epi32(d.as_mut_ptr() as *mut i32, m, cur) }
+        }
+    }
+}
