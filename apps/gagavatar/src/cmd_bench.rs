@@ -154,13 +154,16 @@ fn bench_splat(args: SplatBench) -> Result<()> {
         pb.finish_and_clear();
         println!(
             "splat {regime:?}: {} Gaussians ({visible} visible), {}x{}, {} channels, {threads} threads: \
-             forward median {:.1} ms, backward median {:.1} ms, tile pairs {pairs}, peak RSS {:.0} MiB",
+             forward median {:.1} ms (min {:.1}), backward median {:.1} ms (min {:.1}), tile pairs {pairs}, \
+             peak RSS {:.0} MiB",
             scene.len(),
             cam.width,
             cam.height,
             args.channels,
             median(&mut fwd),
+            fwd[0],
             median(&mut bwd),
+            bwd[0],
             peak_rss_mib().unwrap_or(f64::NAN)
         );
     }

@@ -56,11 +56,22 @@ pub trait Lanes<T: Real>: Copy {
     fn neg(self) -> Self;
     fn le(self, o: Self) -> Mask;
     fn lt(self, o: Self) -> Mask;
+    fn gt(self, o: Self) -> Mask;
     fn ge(self, o: Self) -> Mask;
     /// `a` in the lanes of `m`, `b` elsewhere.
     fn select(m: Mask, a: Self, b: Self) -> Self;
     /// [`Real::fexp`] per lane.
     fn exp(self) -> Self;
+    /// [`Lanes::exp`] of several vectors, step by step side by side so that their long
+    /// dependency chains overlap.
+    #[inline(always)]
+    fn exp_n<const N: usize>(x: [Self; N]) -> [Self; N] {
+        let mut r = x;
+        for i in 0..N {
+            r[i] = x[i].exp();
+        }
+        r
+    }
     /// Sum of the lanes by halving: lanes i and i+8, then i and i+4, i+2, i+1.
     fn hsum(self) -> T;
     fn idx_zero() -> Self::Idx;
@@ -169,6 +180,10 @@ impl<T: Real> Lanes<T> for P16<T> {
     #[inline(always)]
     fn lt(self, o: Self) -> Mask {
         self.cmp(o, |a, b| a < b)
+    }
+    #[inline(always)]
+    fn gt(self, o: Self) -> Mask {
+        self.cmp(o, |a, b| a > b)
     }
     #[inline(always)]
     fn ge(self, o: Self) -> Mask {
@@ -349,6 +364,11 @@ mod avx512 {
             unsafe { _mm512_cmp_ps_mask::<_CMP_LT_OQ>(self.0, o.0) }
         }
         #[inline(always)]
+        fn gt(self, o: Self) -> Mask {
+            // SAFETY: see the module comment.
+            unsafe { _mm512_cmp_ps_mask::<_CMP_GT_OQ>(self.0, o.0) }
+        }
+        #[inline(always)]
         fn ge(self, o: Self) -> Mask {
             // SAFETY: see the module comment.
             unsafe { _mm512_cmp_ps_mask::<_CMP_GE_OQ>(self.0, o.0) }
@@ -360,17 +380,33 @@ mod avx512 {
         }
         #[inline(always)]
         fn exp(self) -> Self {
-            // crate::real::exp_f32, operation for operation.
+            Self::exp_n([self])[0]
+        }
+        #[inline(always)]
+        fn exp_n<const N: usize>(x: [Self; N]) -> [Self; N] {
+            // crate::real::exp_f32, operation for operation, each step on all N vectors.
             const LOG2E: f32 = std::f32::consts::LOG2_E;
             const LN2_HI: f32 = 0.693_359_4;
             const LN2_LO: f32 = -2.121_944_4e-4;
             const ROUND: f32 = 12_582_912.0;
             let s = Self::splat;
-            let x = self.max(s(-87.0)).min(s(88.0));
-            let shifted = x.mul(s(LOG2E)).add(s(ROUND));
-            let k = shifted.sub(s(ROUND));
-            let r = x.sub(k.mul(s(LN2_HI))).sub(k.mul(s(LN2_LO)));
-            let mut p = s(1.987_569_2e-4);
+            let mut xs = x;
+            let mut shifted = x;
+            let mut r = x;
+            let mut p = x;
+            for i in 0..N {
+                xs[i] = x[i].max(s(-87.0)).min(s(88.0));
+            }
+            for i in 0..N {
+                shifted[i] = xs[i].mul(s(LOG2E)).add(s(ROUND));
+            }
+            for i in 0..N {
+                let k = shifted[i].sub(s(ROUND));
+                r[i] = xs[i].sub(k.mul(s(LN2_HI))).sub(k.mul(s(LN2_LO)));
+            }
+            for i in 0..N {
+                p[i] = s(1.987_569_2e-4);
+            }
             for c in [
                 1.398_2e-3,
                 8.333_452e-3,
@@ -378,20 +414,26 @@ mod avx512 {
                 1.666_666_5e-1,
                 0.5,
             ] {
-                p = p.mul(r).add(s(c));
+                for i in 0..N {
+                    p[i] = p[i].mul(r[i]).add(s(c));
+                }
             }
-            let e = p.mul(r).mul(r).add(r).add(s(1.0));
-            // SAFETY: see the module comment.
-            let scale = unsafe {
-                let kbits = _mm512_sub_epi32(
-                    _mm512_castps_si512(shifted.0),
-                    _mm512_set1_epi32(ROUND.to_bits() as i32),
-                );
-                Z16(_mm512_castsi512_ps(_mm512_slli_epi32::<23>(
-                    _mm512_add_epi32(kbits, _mm512_set1_epi32(127)),
-                )))
-            };
-            e.mul(scale)
+            let mut out = x;
+            for i in 0..N {
+                let e = p[i].mul(r[i]).mul(r[i]).add(r[i]).add(s(1.0));
+                // SAFETY: see the module comment.
+                let scale = unsafe {
+                    let kbits = _mm512_sub_epi32(
+                        _mm512_castps_si512(shifted[i].0),
+                        _mm512_set1_epi32(ROUND.to_bits() as i32),
+                    );
+                    Z16(_mm512_castsi512_ps(_mm512_slli_epi32::<23>(
+                        _mm512_add_epi32(kbits, _mm512_set1_epi32(127)),
+                    )))
+                };
+                out[i] = e.mul(scale);
+            }
+            out
         }
         #[inline(always)]
         fn hsum(self) -> f32 {

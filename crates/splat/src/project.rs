@@ -84,8 +84,9 @@ pub struct Splat2D<T> {
     /// 1/255.
     pub cut: T,
     pub depth: T,
-    /// Dilated 2D covariance yy entry: with `cut` it bounds the rows the Gaussian can reach.
-    pub vc: T,
+    /// Half-height of the rows the Gaussian can reach (`sqrt(cut * cov_yy)`: the ellipse
+    /// `d^T Q d <= cut` reaches that far above and below its centre); unused when `cut <= 0`.
+    pub ey: T,
 }
 
 /// Projected Gaussians. A culled Gaussian has `radius == 0` and an empty rect.
@@ -297,7 +298,7 @@ fn project_one<T: Real>(cam: &CamK<T>, g: &[T]) -> (Splat2D<T>, u32, [u16; 4]) {
             opacity,
             cut: T::lit(cut),
             depth: geo.t[2],
-            vc: c,
+            ey: T::lit((cut * c.as_f64()).max(0.0).sqrt()),
         },
         radius as u32,
         [x0 as u16, x1 as u16, y0 as u16, y1 as u16],

@@ -45,19 +45,17 @@ pub struct Frame<'a, T> {
     pub height: usize,
 }
 
-/// Tile-local inclusive row range where the Gaussian can reach alpha >= 1/255.
+/// Tile-local inclusive row range where the Gaussian can reach alpha >= 1/255 (a bound: the
+/// region behind it is inflated far beyond what rounding here can move).
 #[inline(always)]
 pub(crate) fn row_range<T: Real>(s: &Splat2D<T>, y0: usize, th: usize) -> Option<(usize, usize)> {
-    let cut = s.cut.as_f64();
-    if !(cut > 0.0) {
+    if !(s.cut > T::ZERO) {
         return None;
     }
-    // The ellipse d^T Q d <= cut reaches sqrt(cut * cov_yy) above and below its centre.
-    let ey = (cut * s.vc.as_f64()).sqrt();
-    let my = s.my.as_f64() - y0 as f64;
-    let lo = (my - ey).ceil().max(0.0);
-    let hi = (my + ey).floor().min(th as f64 - 1.0);
-    (lo <= hi).then_some((lo as usize, hi as usize))
+    let my = s.my - T::lit(y0 as f64);
+    let lo = (my - s.ey).ceil().fmax(T::ZERO);
+    let hi = (my + s.ey).floor().fmin(T::lit(th as f64 - 1.0));
+    (lo <= hi).then(|| (lo.as_f64() as usize, hi.as_f64() as usize))
 }
 
 /// `n` copies of `zero`, written rather than calloc'ed. Reading a calloc'ed page maps the
@@ -69,6 +67,9 @@ pub(crate) fn zeros<T: Copy>(n: usize, zero: T) -> Vec<T> {
     v.resize(n, zero);
     v
 }
+
+/// Gaussians whose alphas on a row are computed side by side in the forward.
+const GROUP: usize = 4;
 
 /// How many tile-list entries ahead a Gaussian's data is requested.
 const PREFETCH_AHEAD: usize = 8;
@@ -205,6 +206,39 @@ fn eval<T: Real, L: Lanes<T>>(s: &Splat2D<T>, px: L, py: T) -> (L, L, Mask) {
     let alpha = L::splat(s.opacity).mul(g).min(L::splat(T::lit(MAX_ALPHA)));
     let keep = power.le(L::zero()) & alpha.ge(L::splat(T::lit(MIN_ALPHA)));
     (alpha, g, keep)
+}
+
+/// [`eval`] of `N` Gaussians, step by step side by side (alphas and masks only).
+#[inline(always)]
+fn eval_n<T: Real, L: Lanes<T>, const N: usize>(
+    ss: [&Splat2D<T>; N],
+    px: L,
+    py: T,
+) -> ([L; N], [Mask; N]) {
+    let zero = L::zero();
+    let mut power = [zero; N];
+    for i in 0..N {
+        let s = ss[i];
+        let dy = s.my - py;
+        let cdy = s.cc * dy * dy;
+        let bdy = s.cb * dy;
+        let dx = L::splat(s.mx).sub(px);
+        let quad = L::splat(s.ca).mul(dx).mul(dx).add(L::splat(cdy));
+        power[i] = L::splat(T::lit(0.5))
+            .mul(quad)
+            .neg()
+            .sub(L::splat(bdy).mul(dx));
+    }
+    let g = L::exp_n(power);
+    let mut alpha = [zero; N];
+    let mut keep = [0; N];
+    for i in 0..N {
+        alpha[i] = L::splat(ss[i].opacity)
+            .mul(g[i])
+            .min(L::splat(T::lit(MAX_ALPHA)));
+        keep[i] = power[i].le(zero) & alpha[i].ge(L::splat(T::lit(MIN_ALPHA)));
+    }
+    (alpha, keep)
 }
 
 /// Lists, per tile row, the tile-list positions of the Gaussians that can reach it.
@@ -352,6 +386,7 @@ fn forward_band<T: Real, L: Lanes<T>>(
     let y0 = ty * TILE;
     let th = TILE.min(h - y0);
     let one = L::splat(T::ONE);
+    let zero = L::zero();
     let min_t = L::splat(T::lit(MIN_TRANSMITTANCE));
     for tx in 0..w.div_ceil(TILE) {
         let x0 = tx * TILE;
@@ -367,30 +402,50 @@ fn forward_band<T: Real, L: Lanes<T>>(
                 sc.weights.resize(row.len(), L::zero());
                 sc.feat_at.resize(row.len(), 0);
             }
-            let mut t = one;
+            // A pixel that has stopped holds t = 0 from then on (its test below is 0, so it
+            // never takes another Gaussian) and its transmittance is kept in `t_stop`. No
+            // per-pixel "done" mask sits in the loop-carried dependency through `t`.
+            // Columns beyond the image edge start stopped.
+            let mut t = L::select(cols, one, zero);
+            let mut t_stop = zero;
+            let mut stopped: Mask = !cols;
             let mut last = L::idx_zero();
-            // Columns beyond the image edge count as done from the start.
-            let mut done: Mask = !cols;
             let mut ne = 0;
-            for &k in row {
-                if done == ALL {
+            for chunk in row.chunks(GROUP) {
+                if stopped == ALL {
                     break;
                 }
-                let g = list[k as usize] as usize;
-                let (alpha, _, keep) = eval(&f.proj.g[g], px, py);
-                let valid = keep & !done;
-                let test = t.mul(one.sub(alpha));
-                let low = test.lt(min_t);
-                let added = valid & !low;
-                done |= valid & low;
-                // Written whether or not the Gaussian was taken (no branch to mispredict);
-                // `ne` only moves past it if it was.
-                sc.weights[ne] = L::select(added, alpha.mul(t), L::zero());
-                sc.feat_at[ne] = g * cpad;
-                ne += (added != 0) as usize;
-                t = L::select(added, test, t);
-                last = L::idx_set(added, k + 1, last);
+                // The chunk's alphas first, side by side: they do not depend on the
+                // transmittance, and their long exp chains overlap only when interleaved.
+                let n = chunk.len();
+                let mut gs = [0usize; GROUP];
+                for i in 0..GROUP {
+                    gs[i] = list[chunk[i.min(n - 1)] as usize] as usize;
+                    prefetch(feats, gs[i] * cpad, cpad);
+                }
+                let (alphas, keeps) = eval_n::<T, L, GROUP>(gs.map(|g| &f.proj.g[g]), px, py);
+                for i in 0..n {
+                    let (k, g, keep) = (chunk[i], gs[i], keeps[i]);
+                    // Alpha 0 where the pixel skips the Gaussian: its test is then t itself,
+                    // so only the transmittance test decides whether t changes and the chain
+                    // through t never leaves the vector unit.
+                    let alpha = L::select(keep, alphas[i], zero);
+                    let test = t.mul(one.sub(alpha));
+                    let go = test.ge(min_t);
+                    let added = keep & go;
+                    let stop = keep & !go & t.gt(zero);
+                    // Written whether or not the Gaussian was taken (no branch to mispredict);
+                    // `ne` only moves past it if it was.
+                    sc.weights[ne] = L::select(go, alpha.mul(t), zero);
+                    sc.feat_at[ne] = g * cpad;
+                    ne += (added != 0) as usize;
+                    t_stop = L::select(stop, t, t_stop);
+                    stopped |= stop;
+                    t = L::select(go, test, zero);
+                    last = L::idx_set(added, k + 1, last);
+                }
             }
+            let t = L::select(stopped, t_stop, t);
             let o = ly * w + x0;
             t.store_masked(&mut final_t[o..], cols);
             L::idx_store_masked(last, &mut n_contrib[o..], cols);
@@ -430,6 +485,35 @@ struct BandGrads<T> {
     background: Vec<T>,
 }
 
+/// A Gaussian's feature-gradient sums, one vector per 16-channel block: a fixed-size array
+/// (kept in registers) for the usual channel counts, a vector otherwise.
+trait Blocks<L>: Sized {
+    fn zeroed(nb: usize, zero: L) -> Self;
+    fn blocks(&mut self) -> &mut [L];
+}
+
+impl<L: Copy, const N: usize> Blocks<L> for [L; N] {
+    #[inline(always)]
+    fn zeroed(_: usize, zero: L) -> Self {
+        [zero; N]
+    }
+    #[inline(always)]
+    fn blocks(&mut self) -> &mut [L] {
+        self
+    }
+}
+
+impl<L: Copy> Blocks<L> for Vec<L> {
+    #[inline(always)]
+    fn zeroed(nb: usize, zero: L) -> Self {
+        vec![zero; nb]
+    }
+    #[inline(always)]
+    fn blocks(&mut self) -> &mut [L] {
+        self
+    }
+}
+
 /// Backward scratch reused across the tiles of a band.
 struct BwdScratch<L> {
     /// dL/dpixel per tile row and channel, pixels in lanes: `[row][cpad]`.
@@ -466,11 +550,11 @@ pub fn backward<T: Real>(f: &Frame<T>, state: &PixelState<T>, grad: &[T], n: usi
                 // SAFETY: the CPU has AVX-512F (path).
                 unsafe {
                     match nb {
-                        1 => backward_band_avx512::<1>(f32f, &pad32, st32, grad32, ty, sc),
-                        2 => backward_band_avx512::<2>(f32f, &pad32, st32, grad32, ty, sc),
-                        3 => backward_band_avx512::<3>(f32f, &pad32, st32, grad32, ty, sc),
-                        4 => backward_band_avx512::<4>(f32f, &pad32, st32, grad32, ty, sc),
-                        _ => backward_band_avx512::<0>(f32f, &pad32, st32, grad32, ty, sc),
+                        1 => backward_band_avx512::<[Z16; 1]>(f32f, &pad32, st32, grad32, ty, sc),
+                        2 => backward_band_avx512::<[Z16; 2]>(f32f, &pad32, st32, grad32, ty, sc),
+                        3 => backward_band_avx512::<[Z16; 3]>(f32f, &pad32, st32, grad32, ty, sc),
+                        4 => backward_band_avx512::<[Z16; 4]>(f32f, &pad32, st32, grad32, ty, sc),
+                        _ => backward_band_avx512::<Vec<Z16>>(f32f, &pad32, st32, grad32, ty, sc),
                     }
                 }
             };
@@ -496,7 +580,7 @@ pub fn backward<T: Real>(f: &Frame<T>, state: &PixelState<T>, grad: &[T], n: usi
             .into_par_iter()
             .map_init(
                 || BwdScratch::new(n),
-                |sc, ty| backward_band::<T, P16<T>, 0>(f, &pad, state, grad, ty, sc),
+                |sc, ty| backward_band::<T, P16<T>, Vec<P16<T>>>(f, &pad, state, grad, ty, sc),
             )
             .collect(),
     };
@@ -552,7 +636,7 @@ impl<L> BwdScratch<L> {
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx2")]
-unsafe fn backward_band_avx512<const NB: usize>(
+unsafe fn backward_band_avx512<D: Blocks<Z16>>(
     f: &Frame<f32>,
     pad: &Padded<f32>,
     state: &PixelState<f32>,
@@ -560,7 +644,7 @@ unsafe fn backward_band_avx512<const NB: usize>(
     ty: usize,
     sc: &mut BwdScratch<Z16>,
 ) -> BandGrads<f32> {
-    backward_band::<f32, Z16, NB>(f, pad, state, grad, ty, sc)
+    backward_band::<f32, Z16, D>(f, pad, state, grad, ty, sc)
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -573,7 +657,7 @@ unsafe fn backward_band_avx2<T: Real>(
     ty: usize,
     sc: &mut BwdScratch<P16<T>>,
 ) -> BandGrads<T> {
-    backward_band::<T, P16<T>, 0>(f, pad, state, grad, ty, sc)
+    backward_band::<T, P16<T>, Vec<P16<T>>>(f, pad, state, grad, ty, sc)
 }
 
 /// The backward of one band, Gaussian by Gaussian from back to front and, for each, tile row
@@ -582,9 +666,9 @@ unsafe fn backward_band_avx2<T: Real>(
 /// `s = sum over the Gaussians behind of w_i (dL/dpixel . f_i)`:
 /// `dL/dalpha = T (dL/dpixel . f) - (s + T_final (dL/dpixel . background)) / (1 - alpha)`.
 /// The Gaussian's own sums (features, screen-space quantities) stay in registers across its
-/// rows. `NB` is the number of 16-channel blocks (0: any number, kept in memory).
+/// rows.
 #[inline(always)]
-fn backward_band<T: Real, L: Lanes<T>, const NB: usize>(
+fn backward_band<T: Real, L: Lanes<T>, D: Blocks<L>>(
     f: &Frame<T>,
     pad: &Padded<T>,
     state: &PixelState<T>,
@@ -595,7 +679,6 @@ fn backward_band<T: Real, L: Lanes<T>, const NB: usize>(
     let (w, h, c) = (f.width, f.height, f.channels);
     let (feats, bgp, cpad) = (&*pad.features, &*pad.background, pad.cpad);
     let nb = cpad / WIDTH;
-    debug_assert!(NB == 0 || NB == nb);
     let stride = c + SCREEN;
     let plane = h * w;
     let band = &f.bins.bands[ty];
@@ -618,8 +701,8 @@ fn backward_band<T: Real, L: Lanes<T>, const NB: usize>(
     let one = L::splat(T::ONE);
     let half = L::splat(T::lit(0.5));
     let max_alpha = L::splat(T::lit(MAX_ALPHA));
-    let mut dfeat_fixed = [L::zero(); NB];
-    let mut dfeat_dyn = vec![L::zero(); if NB == 0 { nb } else { 0 }];
+    let mut dfeat_store = D::zeroed(nb, L::zero());
+    debug_assert_eq!(dfeat_store.blocks().len(), nb);
     let mut trow = [L::zero(); TILE];
     let mut tfin = [L::zero(); TILE];
     let mut srow = [L::zero(); TILE];
@@ -641,11 +724,18 @@ fn backward_band<T: Real, L: Lanes<T>, const NB: usize>(
         let mut kmax = 0;
         for ly in 0..th {
             for j in 0..nb {
-                let blk: [[T; WIDTH]; WIDTH] =
-                    std::array::from_fn(|i| dpc[ly * cpad + j * WIDTH + i].to_array());
+                // A 16x16 transpose. (Plain loops: closures would not inherit the kernel's
+                // target features.)
+                let mut blk = [[T::ZERO; WIDTH]; WIDTH];
+                for (i, b) in blk.iter_mut().enumerate() {
+                    *b = dpc[ly * cpad + j * WIDTH + i].to_array();
+                }
                 for l in 0..WIDTH {
-                    dpp[(ly * WIDTH + l) * nb + j] =
-                        L::from_array(std::array::from_fn(|i| blk[i][l]));
+                    let mut col = [T::ZERO; WIDTH];
+                    for i in 0..WIDTH {
+                        col[i] = blk[i][l];
+                    }
+                    dpp[(ly * WIDTH + l) * nb + j] = L::from_array(col);
                 }
             }
             let mut dot = L::zero();
@@ -682,11 +772,7 @@ fn backward_band<T: Real, L: Lanes<T>, const NB: usize>(
                 continue;
             };
             let fp = &feats[g * cpad..g * cpad + c];
-            let dfeat: &mut [L] = if NB == 0 {
-                &mut dfeat_dyn
-            } else {
-                &mut dfeat_fixed
-            };
+            let dfeat = dfeat_store.blocks();
             for d in dfeat.iter_mut() {
                 *d = L::zero();
             }
@@ -722,9 +808,9 @@ fn backward_band<T: Real, L: Lanes<T>, const NB: usize>(
                 let (lo, hi) = (m.trailing_zeros() as usize, 15 - m.leading_zeros() as usize);
                 for l in lo..=hi {
                     let wl = L::splat(wa[l]);
-                    let dq = &dpp[(ly * WIDTH + l) * nb..(ly * WIDTH + l + 1) * nb];
-                    for (d, q) in dfeat.iter_mut().zip(dq) {
-                        *d = d.add(q.mul(wl));
+                    let at = (ly * WIDTH + l) * nb;
+                    for j in 0..dfeat.len() {
+                        dfeat[j] = dfeat[j].add(dpp[at + j].mul(wl));
                     }
                 }
                 // alpha = min(0.99, o G): no gradient where the clamp is active.

@@ -32,6 +32,7 @@ pub trait Real:
     fn fexp(self) -> Self;
     fn sqrt(self) -> Self;
     fn ceil(self) -> Self;
+    fn floor(self) -> Self;
     fn fmin(self, o: Self) -> Self;
     fn fmax(self, o: Self) -> Self;
 }
@@ -57,6 +58,10 @@ macro_rules! impl_real {
             #[inline(always)]
             fn ceil(self) -> Self {
                 <$t>::ceil(self)
+            }
+            #[inline(always)]
+            fn floor(self) -> Self {
+                <$t>::floor(self)
             }
             #[inline(always)]
             fn fmin(self, o: Self) -> Self {
