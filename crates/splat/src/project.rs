@@ -235,15 +235,137 @@ pub const GEOM: usize = 11;
 /// Projects all Gaussians in parallel. Results depend only on each Gaussian, so they are
 /// identical for any thread count.
 pub fn project<T: Real>(cam: &CamK<T>, geom: &[T]) -> Projected<T> {
-    let (g, (radius, rect)) = geom
-        .par_chunks(GEOM)
-        .with_min_len(2048)
-        .map(|g| {
-            let (s, r, rect) = project_one(cam, g);
-            (s, (r, rect))
-        })
-        .unzip();
+    let n = geom.len() / GEOM;
+    let mut g = vec![Splat2D::default(); n];
+    let mut radius = vec![0u32; n];
+    let mut rect = vec![[0u16; 4]; n];
+    let avx2 = has_avx2();
+    g.par_chunks_mut(PROJECT_BLOCK)
+        .zip(radius.par_chunks_mut(PROJECT_BLOCK))
+        .zip(rect.par_chunks_mut(PROJECT_BLOCK))
+        .zip(geom.par_chunks(PROJECT_BLOCK * GEOM))
+        .for_each(|(((s, r), rc), gm)| {
+            #[cfg(target_arch = "x86_64")]
+            if avx2 {
+                // SAFETY: the CPU supports AVX2 (has_avx2).
+                return unsafe { project_block_avx2(cam, gm, s, r, rc) };
+            }
+            project_block(cam, gm, s, r, rc)
+        });
     Projected { g, radius, rect }
+}
+
+/// Backward of [`project`] for all Gaussians: `screen` holds each Gaussian's
+/// [`crate::raster::SCREEN`] screen-space gradients (mean x, mean y, conic A, B, C, opacity),
+/// `out` receives dL/dgeom (`GEOM` per Gaussian); culled Gaussians are left untouched.
+pub fn project_backward<T: Real>(
+    cam: &CamK<T>,
+    geom: &[T],
+    screen: &[T],
+    radius: &[u32],
+    out: &mut [T],
+) {
+    const S: usize = crate::raster::SCREEN;
+    let avx2 = has_avx2();
+    out.par_chunks_mut(PROJECT_BLOCK * GEOM)
+        .zip(geom.par_chunks(PROJECT_BLOCK * GEOM))
+        .zip(screen.par_chunks(PROJECT_BLOCK * S))
+        .zip(radius.par_chunks(PROJECT_BLOCK))
+        .for_each(|(((o, g), s), r)| {
+            #[cfg(target_arch = "x86_64")]
+            if avx2 {
+                // SAFETY: the CPU supports AVX2 (has_avx2).
+                return unsafe { project_backward_block_avx2(cam, g, s, r, o) };
+            }
+            project_backward_block(cam, g, s, r, o)
+        });
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn project_backward_block_avx2<T: Real>(
+    cam: &CamK<T>,
+    geom: &[T],
+    screen: &[T],
+    radius: &[u32],
+    out: &mut [T],
+) {
+    project_backward_block(cam, geom, screen, radius, out)
+}
+
+#[inline(always)]
+fn project_backward_block<T: Real>(
+    cam: &CamK<T>,
+    geom: &[T],
+    screen: &[T],
+    radius: &[u32],
+    out: &mut [T],
+) {
+    for (((o, g), s), &r) in out
+        .chunks_mut(GEOM)
+        .zip(geom.chunks(GEOM))
+        .zip(screen.chunks(crate::raster::SCREEN))
+        .zip(radius)
+    {
+        if r == 0 {
+            continue;
+        }
+        let d = Grad2D {
+            mx: s[0],
+            my: s[1],
+            ca: s[2],
+            cb: s[3],
+            cc: s[4],
+            opacity: s[5],
+        };
+        project_backward_one(cam, g, &d, o);
+    }
+}
+
+/// Gaussians per parallel task of the projection.
+const PROJECT_BLOCK: usize = 2048;
+
+fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// [`project_block`] compiled with AVX2 (and so SSE4.1): floor and ceil become single
+/// instructions instead of libm calls (same results), about half the projection's time.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn project_block_avx2<T: Real>(
+    cam: &CamK<T>,
+    geom: &[T],
+    g: &mut [Splat2D<T>],
+    radius: &mut [u32],
+    rect: &mut [[u16; 4]],
+) {
+    project_block(cam, geom, g, radius, rect)
+}
+
+#[inline(always)]
+fn project_block<T: Real>(
+    cam: &CamK<T>,
+    geom: &[T],
+    g: &mut [Splat2D<T>],
+    radius: &mut [u32],
+    rect: &mut [[u16; 4]],
+) {
+    for (((s, r), rc), gm) in g
+        .iter_mut()
+        .zip(radius.iter_mut())
+        .zip(rect.iter_mut())
+        .zip(geom.chunks(GEOM))
+    {
+        (*s, *r, *rc) = project_one(cam, gm);
+    }
 }
 
 #[inline(always)]

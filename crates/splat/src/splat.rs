@@ -4,7 +4,7 @@
 use crate::binning::{bin, Bins};
 use crate::camera::Camera;
 use crate::error::{Result, SplatError};
-use crate::project::{project, project_backward_one, CamK, Grad2D, Projected, GEOM};
+use crate::project::{project, project_backward, CamK, Projected, GEOM};
 use crate::raster::{backward, forward, Frame, PixelState};
 use crate::real::Real;
 use candle_core::{CpuStorage, DType, Device, Layout, Shape, Tensor};
@@ -145,26 +145,13 @@ impl SplatOp {
             let g2 = backward(&frame, &st.pix, &grad[off..off + size], n);
             off += size;
             let geom_b = &geom[b * n * GEOM..(b + 1) * n * GEOM];
-            d_geom[b * n * GEOM..(b + 1) * n * GEOM]
-                .par_chunks_mut(GEOM)
-                .zip(geom_b.par_chunks(GEOM))
-                .zip(g2.screen.par_chunks(6))
-                .zip(st.proj.radius.par_iter())
-                .with_min_len(512)
-                .for_each(|(((out, g), s), &r)| {
-                    if r == 0 {
-                        return;
-                    }
-                    let d = Grad2D {
-                        mx: s[0],
-                        my: s[1],
-                        ca: s[2],
-                        cb: s[3],
-                        cc: s[4],
-                        opacity: s[5],
-                    };
-                    project_backward_one(&k, g, &d, out);
-                });
+            project_backward(
+                &k,
+                geom_b,
+                &g2.screen,
+                &st.proj.radius,
+                &mut d_geom[b * n * GEOM..(b + 1) * n * GEOM],
+            );
             // The first (often only) item's gradient is kept as it is, not copied.
             if d_feat.is_empty() {
                 d_feat = g2.features;
@@ -302,13 +289,14 @@ fn batched(t: &Tensor, name: &'static str, k: Option<usize>) -> Result<Tensor> {
 }
 
 fn check_finite(t: &Tensor, name: &'static str) -> Result<()> {
-    // x - x is 0 for finite x and NaN otherwise, so one reduction tells whether to look closer.
-    #[allow(clippy::eq_op)]
-    let probe = (t - t)?
-        .sum_all()?
-        .to_dtype(DType::F64)?
-        .to_scalar::<f64>()?;
-    if probe == 0.0 {
+    let (storage, layout) = t.storage_and_layout();
+    let fast = match (&*storage, layout.contiguous_offsets()) {
+        (candle_core::Storage::Cpu(CpuStorage::F32(v)), Some((a, b))) => Some(all_finite(&v[a..b])),
+        (candle_core::Storage::Cpu(CpuStorage::F64(v)), Some((a, b))) => Some(all_finite(&v[a..b])),
+        _ => None,
+    };
+    drop(storage);
+    if fast == Some(true) {
         return Ok(());
     }
     let v: Vec<f64> = t.flatten_all()?.to_dtype(DType::F64)?.to_vec1()?;
@@ -316,6 +304,18 @@ fn check_finite(t: &Tensor, name: &'static str) -> Result<()> {
         return Err(SplatError::NonFinite { name, index, value });
     }
     Ok(())
+}
+
+/// Whether every value is finite, without allocating: `x - x` is 0 exactly for finite `x`,
+/// and counting the zeros (rather than stopping at the first miss) lets the loop vectorise.
+fn all_finite<T: Real>(v: &[T]) -> bool {
+    #[allow(clippy::eq_op)]
+    v.par_chunks(1 << 16).all(|c| {
+        c.iter()
+            .map(|&x| (x - x == T::ZERO) as usize)
+            .sum::<usize>()
+            == c.len()
+    })
 }
 
 /// Splats each Gaussian set with its camera. All cameras must share one image size.
