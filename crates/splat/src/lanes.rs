@@ -478,3 +478,85 @@ mod avx512 {
         }
     }
 }
+
+#[cfg(all(test, target_arch = "x86_64"))]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    /// Every operation of [`Z16`] against [`P16<f32>`], bit for bit, on values that include
+    /// ties, signed zeros and the exp's clamping range.
+    #[test]
+    fn avx512_lanes_equal_array_lanes() {
+        if !std::arch::is_x86_feature_detected!("avx512f") {
+            return;
+        }
+        let mut rng = Rng::new(3);
+        for round in 0..200 {
+            let draw = |rng: &mut Rng| -> [f32; WIDTH] {
+                std::array::from_fn(|i| match (round + i) % 5 {
+                    0 => 0.0,
+                    1 => -0.0,
+                    2 => rng.range(-100.0, 100.0) as f32,
+                    _ => rng.range(-3.0, 3.0) as f32,
+                })
+            };
+            let (a, b) = (draw(&mut rng), draw(&mut rng));
+            let m = rng.below(1 << 16) as Mask;
+            let (za, zb) = (Z16::load(&a), Z16::load(&b));
+            let (pa, pb) = (P16(a), P16(b));
+            let same = |what: &str, z: [f32; WIDTH], p: [f32; WIDTH]| {
+                for i in 0..WIDTH {
+                    assert_eq!(
+                        z[i].to_bits(),
+                        p[i].to_bits(),
+                        "{what} lane {i}: expected {}, got {}",
+                        p[i],
+                        z[i]
+                    );
+                }
+            };
+            same("add", za.add(zb).to_array(), pa.add(pb).0);
+            same("sub", za.sub(zb).to_array(), pa.sub(pb).0);
+            same("mul", za.mul(zb).to_array(), pa.mul(pb).0);
+            same("div", za.div(zb).to_array(), pa.div(pb).0);
+            same("min", za.min(zb).to_array(), pa.min(pb).0);
+            same("max", za.max(zb).to_array(), pa.max(pb).0);
+            same("neg", za.neg().to_array(), pa.neg().0);
+            same("exp", za.exp().to_array(), pa.exp().0);
+            same(
+                "select",
+                Z16::select(m, za, zb).to_array(),
+                P16::select(m, pa, pb).0,
+            );
+            same(
+                "iota",
+                Z16::iota_plus(a[2]).to_array(),
+                P16::iota_plus(a[2]).0,
+            );
+            assert_eq!(za.le(zb), pa.le(pb), "le");
+            assert_eq!(za.lt(zb), pa.lt(pb), "lt");
+            assert_eq!(za.gt(zb), pa.gt(pb), "gt");
+            assert_eq!(za.ge(zb), pa.ge(pb), "ge");
+            assert_eq!(za.hsum().to_bits(), pa.hsum().to_bits(), "hsum");
+            let n = round % (WIDTH + 1);
+            same(
+                "load_first",
+                Z16::load_first(&a[..n]).to_array(),
+                P16::load_first(&a[..n]).0,
+            );
+            let (mut dz, mut dp) = ([7.0f32; WIDTH], [7.0f32; WIDTH]);
+            za.store_masked(&mut dz, m);
+            pa.store_masked(&mut dp, m);
+            same("store_masked", dz, dp);
+            let idx: [u32; WIDTH] = std::array::from_fn(|_| rng.below(50) as u32);
+            let k = rng.below(50) as u32;
+            let (iz, ip) = (Z16::idx_load_first(&idx), P16::<f32>::idx_load_first(&idx));
+            assert_eq!(Z16::idx_gt(iz, k), P16::<f32>::idx_gt(ip, k), "idx_gt");
+            let (mut oz, mut op) = ([0u32; WIDTH], [0u32; WIDTH]);
+            Z16::idx_store_masked(Z16::idx_set(m, k, iz), &mut oz, ALL);
+            P16::<f32>::idx_store_masked(P16::<f32>::idx_set(m, k, ip), &mut op, ALL);
+            assert_eq!(oz, op, "idx_set");
+        }
+    }
+}

@@ -1,11 +1,12 @@
 //! Per-tile alpha compositing (spec section 7) and its backward.
 //!
-//! Work is split by bands (one row of 16x16 tiles). Within a tile the loop runs over the tile's
-//! Gaussians front to back and, for each, over only the pixel rows and column spans where its
-//! alpha can reach 1/255 (a slightly inflated ellipse, solved per row). Each row's powers and
-//! alphas are computed for all 16 lanes at once, branch-free so the compiler vectorises them;
-//! the per-pixel decisions and the accumulation order are exactly the release's, so results
-//! do not depend on the thread count or on the SIMD path taken.
+//! Work is split by bands (one row of 16x16 tiles). Both passes put the 16 pixels of a tile row
+//! in the 16 lanes of a vector ([`crate::lanes`]) and only visit the rows a Gaussian can reach
+//! (a slightly inflated ellipse). The forward composites row by row: every Gaussian reaching the
+//! row takes its turn on all 16 pixels at once, then the weighted features are summed with the
+//! sums in registers. The backward goes Gaussian by Gaussian, back to front. Per pixel, the
+//! decisions (skip, stop) and the forward's accumulation order are exactly the release's, and
+//! no result depends on the thread count or on the instruction set the kernels run with.
 
 use crate::binning::Bins;
 #[cfg(target_arch = "x86_64")]

@@ -1,4 +1,4 @@
-//! The AVX-512 row kernels must give bit-identical images and gradients to the portable ones.
+//! The AVX-512 kernels must give bit-identical images and gradients to the plain-array ones.
 //! Alone in its own test binary because it toggles a process-wide environment variable.
 
 use candle_core::{DType, Device, Tensor, Var};
