@@ -189,33 +189,15 @@ impl<'a, T: Real> Padded<'a, T> {
     }
 }
 
-/// Powers, exp(power) and alphas of one Gaussian on one tile row (`px` holds the 16 pixel x
-/// coordinates) and the mask of lanes the release would not skip (`power <= 0` and
-/// `alpha >= 1/255`).
-#[inline(always)]
-fn eval<T: Real, L: Lanes<T>>(s: &Splat2D<T>, px: L, py: T) -> (L, L, Mask) {
-    let dy = s.my - py;
-    let cdy = s.cc * dy * dy;
-    let bdy = s.cb * dy;
-    let dx = L::splat(s.mx).sub(px);
-    let quad = L::splat(s.ca).mul(dx).mul(dx).add(L::splat(cdy));
-    let power = L::splat(T::lit(0.5))
-        .mul(quad)
-        .neg()
-        .sub(L::splat(bdy).mul(dx));
-    let g = power.exp();
-    let alpha = L::splat(s.opacity).mul(g).min(L::splat(T::lit(MAX_ALPHA)));
-    let keep = power.le(L::zero()) & alpha.ge(L::splat(T::lit(MIN_ALPHA)));
-    (alpha, g, keep)
-}
-
-/// [`eval`] of `N` Gaussians, step by step side by side (alphas and masks only).
+/// Alphas and exp(power) of `N` Gaussians on one tile row (`px` holds the 16 pixel x
+/// coordinates) and the masks of lanes the release would not skip (`power <= 0` and
+/// `alpha >= 1/255`), computed step by step side by side so the long exp chains overlap.
 #[inline(always)]
 fn eval_n<T: Real, L: Lanes<T>, const N: usize>(
     ss: [&Splat2D<T>; N],
     px: L,
     py: T,
-) -> ([L; N], [Mask; N]) {
+) -> ([L; N], [L; N], [Mask; N]) {
     let zero = L::zero();
     let mut power = [zero; N];
     for i in 0..N {
@@ -239,7 +221,7 @@ fn eval_n<T: Real, L: Lanes<T>, const N: usize>(
             .min(L::splat(T::lit(MAX_ALPHA)));
         keep[i] = power[i].le(zero) & alpha[i].ge(L::splat(T::lit(MIN_ALPHA)));
     }
-    (alpha, keep)
+    (alpha, g, keep)
 }
 
 /// Lists, per tile row, the tile-list positions of the Gaussians that can reach it.
@@ -306,7 +288,8 @@ pub fn forward<T: Real>(f: &Frame<T>) -> (Vec<T>, PixelState<T>) {
     match (path::<T>(), as_f32(f)) {
         #[cfg(target_arch = "x86_64")]
         (Path::Avx512, Some(f32f)) => {
-            let pad32 = Padded::new(f32f);
+            // SAFETY: T is f32 (as_f32), so Padded<T> is Padded<f32>.
+            let pad32 = unsafe { &*(&pad as *const Padded<T>).cast::<Padded<f32>>() };
             outs.into_par_iter()
                 .enumerate()
                 .for_each_init(FwdScratch::new, |sc, (ty, out)| {
@@ -314,7 +297,7 @@ pub fn forward<T: Real>(f: &Frame<T>) -> (Vec<T>, PixelState<T>) {
                     // AVX-512F (path).
                     unsafe {
                         let out = std::mem::transmute::<BandOut<T>, BandOut<f32>>(out);
-                        forward_band_avx512(f32f, &pad32, ty, out, sc)
+                        forward_band_avx512(f32f, pad32, ty, out, sc)
                     }
                 })
         }
@@ -424,7 +407,7 @@ fn forward_band<T: Real, L: Lanes<T>>(
                     gs[i] = list[chunk[i.min(n - 1)] as usize] as usize;
                     prefetch(feats, gs[i] * cpad, cpad);
                 }
-                let (alphas, keeps) = eval_n::<T, L, GROUP>(gs.map(|g| &f.proj.g[g]), px, py);
+                let (alphas, _, keeps) = eval_n::<T, L, GROUP>(gs.map(|g| &f.proj.g[g]), px, py);
                 for i in 0..n {
                     let (k, g, keep) = (chunk[i], gs[i], keeps[i]);
                     // Alpha 0 where the pixel skips the Gaussian: its test is then t itself,
@@ -539,7 +522,8 @@ pub fn backward<T: Real>(f: &Frame<T>, state: &PixelState<T>, grad: &[T], n: usi
     let band_grads: Vec<BandGrads<T>> = match (path::<T>(), as_f32(f)) {
         #[cfg(target_arch = "x86_64")]
         (Path::Avx512, Some(f32f)) => {
-            let pad32 = Padded::new(f32f);
+            // SAFETY: T is f32 (as_f32), so Padded<T> is Padded<f32>.
+            let pad32 = unsafe { &*(&pad as *const Padded<T>).cast::<Padded<f32>>() };
             // SAFETY: T is f32 (as_f32), so the slices and results have the same types.
             let (st32, grad32) = unsafe {
                 (
@@ -551,11 +535,11 @@ pub fn backward<T: Real>(f: &Frame<T>, state: &PixelState<T>, grad: &[T], n: usi
                 // SAFETY: the CPU has AVX-512F (path).
                 unsafe {
                     match nb {
-                        1 => backward_band_avx512::<[Z16; 1]>(f32f, &pad32, st32, grad32, ty, sc),
-                        2 => backward_band_avx512::<[Z16; 2]>(f32f, &pad32, st32, grad32, ty, sc),
-                        3 => backward_band_avx512::<[Z16; 3]>(f32f, &pad32, st32, grad32, ty, sc),
-                        4 => backward_band_avx512::<[Z16; 4]>(f32f, &pad32, st32, grad32, ty, sc),
-                        _ => backward_band_avx512::<Vec<Z16>>(f32f, &pad32, st32, grad32, ty, sc),
+                        1 => backward_band_avx512::<[Z16; 1]>(f32f, pad32, st32, grad32, ty, sc),
+                        2 => backward_band_avx512::<[Z16; 2]>(f32f, pad32, st32, grad32, ty, sc),
+                        3 => backward_band_avx512::<[Z16; 3]>(f32f, pad32, st32, grad32, ty, sc),
+                        4 => backward_band_avx512::<[Z16; 4]>(f32f, pad32, st32, grad32, ty, sc),
+                        _ => backward_band_avx512::<Vec<Z16>>(f32f, pad32, st32, grad32, ty, sc),
                     }
                 }
             };
@@ -784,7 +768,7 @@ fn backward_band<T: Real, L: Lanes<T>, D: Blocks<L>>(
                     continue;
                 }
                 let py = T::lit((y0 + ly) as f64);
-                let (alpha, gexp, keep) = eval(s, px, py);
+                let ([alpha], [gexp], [keep]) = eval_n::<T, L, 1>([s], px, py);
                 let m = keep & cols & L::idx_gt(ncon[ly], k as u32);
                 if m == 0 {
                     continue;

@@ -84,26 +84,15 @@ fn ours(x: &Tensor) -> bool {
 /// wrongly (see [`maxpool2d_portable`]); on the CPU this op gives each window's gradient to its first maximum in
 /// row-major order, like PyTorch. Other devices use candle ops (index_select + maximum).
 pub fn maxpool2d(x: &Tensor, k: usize, s: usize) -> Result<Tensor> {
-    let (_, _, h, w) = x.dims4()?;
-    if k == 0 || s == 0 || h < k || w < k {
-        return Err(input_err(
-            "max-pool input",
-            format!(
-                "{:?} is smaller than the {k}x{k} window (stride {s})",
-                x.dims()
-            ),
-        ));
-    }
+    pool_dims(x, k, s)?;
     if ours(x) {
         return Ok(x.contiguous()?.apply_op1(MaxPool { k, s })?);
     }
     maxpool2d_portable(x, k, s)
 }
 
-/// [`maxpool2d`] from candle ops only (any device; the path used off the CPU): max reductions
-/// over a reshape when `k == s`, else the maximum over the `k^2` strided `index_select`s. Tied
-/// maxima do not follow PyTorch's rule here (measure zero for real features).
-pub fn maxpool2d_portable(x: &Tensor, k: usize, s: usize) -> Result<Tensor> {
+/// `(H, W)` of a `[B, C, H, W]` max-pool input, or an error when the window does not fit.
+fn pool_dims(x: &Tensor, k: usize, s: usize) -> Result<(usize, usize)> {
     let (_, _, h, w) = x.dims4()?;
     if k == 0 || s == 0 || h < k || w < k {
         return Err(input_err(
@@ -114,6 +103,14 @@ pub fn maxpool2d_portable(x: &Tensor, k: usize, s: usize) -> Result<Tensor> {
             ),
         ));
     }
+    Ok((h, w))
+}
+
+/// [`maxpool2d`] from candle ops only (any device; the path used off the CPU): max reductions
+/// over a reshape when `k == s`, else the maximum over the `k^2` strided `index_select`s. Tied
+/// maxima do not follow PyTorch's rule here (measure zero for real features).
+pub fn maxpool2d_portable(x: &Tensor, k: usize, s: usize) -> Result<Tensor> {
+    let (h, w) = pool_dims(x, k, s)?;
     let (oh, ow) = ((h - k) / s + 1, (w - k) / s + 1);
     if k == s {
         // Non-overlapping windows: a reshape and two max reductions. (candle's own max-pool
