@@ -1,4 +1,4 @@
-//! 16-lane vectors for the compositing kernels: one lane per pixel of a 16-pixel tile row, or
+//! 16-lane vectors for the compositing kernels: one lane per pixel of a 4x4 pixel block, or
 //! one per channel of a 16-channel block.
 //!
 //! The kernels in [`crate::raster`] are written once against [`Lanes`] and compiled twice: with
@@ -10,7 +10,7 @@
 
 use crate::real::Real;
 
-/// Lanes per vector: the width of a tile row.
+/// Lanes per vector: the pixels of a 4x4 block.
 pub const WIDTH: usize = 16;
 /// One bit per lane.
 pub type Mask = u16;

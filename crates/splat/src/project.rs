@@ -87,6 +87,8 @@ pub struct Splat2D<T> {
     /// Half-height of the rows the Gaussian can reach (`sqrt(cut * cov_yy)`: the ellipse
     /// `d^T Q d <= cut` reaches that far above and below its centre); unused when `cut <= 0`.
     pub ey: T,
+    /// Half-width of the columns it can reach, `sqrt(cut * cov_xx)`.
+    pub ex: T,
 }
 
 /// Projected Gaussians. A culled Gaussian has `radius == 0` and an empty rect.
@@ -421,6 +423,7 @@ fn project_one<T: Real>(cam: &CamK<T>, g: &[T]) -> (Splat2D<T>, u32, [u16; 4]) {
             cut: T::lit(cut),
             depth: geo.t[2],
             ey: T::lit((cut * c.as_f64()).max(0.0).sqrt()),
+            ex: T::lit((cut * a.as_f64()).max(0.0).sqrt()),
         },
         radius as u32,
         [x0 as u16, x1 as u16, y0 as u16, y1 as u16],
