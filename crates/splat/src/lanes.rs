@@ -54,6 +54,8 @@ pub trait Lanes<T: Real>: Copy {
     /// `self > o ? self : o` per lane (the second operand when either is NaN).
     fn max(self, o: Self) -> Self;
     fn neg(self) -> Self;
+    /// `self * a + b` with one rounding.
+    fn mul_add(self, a: Self, b: Self) -> Self;
     fn le(self, o: Self) -> Mask;
     fn lt(self, o: Self) -> Mask;
     fn gt(self, o: Self) -> Mask;
@@ -172,6 +174,14 @@ impl<T: Real> Lanes<T> for P16<T> {
     #[inline(always)]
     fn neg(self) -> Self {
         P16(self.0.map(|a| -a))
+    }
+    #[inline(always)]
+    fn mul_add(self, a: Self, b: Self) -> Self {
+        let mut r = self.0;
+        for i in 0..WIDTH {
+            r[i] = self.0[i].mul_add(a.0[i], b.0[i]);
+        }
+        P16(r)
     }
     #[inline(always)]
     fn le(self, o: Self) -> Mask {
@@ -354,6 +364,11 @@ mod avx512 {
             })
         }
         #[inline(always)]
+        fn mul_add(self, a: Self, b: Self) -> Self {
+            // SAFETY: see the module comment.
+            Z16(unsafe { _mm512_fmadd_ps(self.0, a.0, b.0) })
+        }
+        #[inline(always)]
         fn le(self, o: Self) -> Mask {
             // SAFETY: see the module comment.
             unsafe { _mm512_cmp_ps_mask::<_CMP_LE_OQ>(self.0, o.0) }
@@ -384,54 +399,36 @@ mod avx512 {
         }
         #[inline(always)]
         fn exp_n<const N: usize>(x: [Self; N]) -> [Self; N] {
-            // crate::real::exp_f32, operation for operation, each step on all N vectors.
-            const LOG2E: f32 = std::f32::consts::LOG2_E;
-            const LN2_HI: f32 = 0.693_359_4;
-            const LN2_LO: f32 = -2.121_944_4e-4;
-            const ROUND: f32 = 12_582_912.0;
+            // crate::real::exp_f32, operation for operation, each step on all N vectors;
+            // `scalef` multiplies by 2^k with the same single rounding.
+            use crate::real::{EXP_HI, EXP_LO, EXP_POLY, LN2_HI, LN2_LO, LOG2E, ROUND};
             let s = Self::splat;
             let mut xs = x;
-            let mut shifted = x;
+            let mut k = x;
             let mut r = x;
             let mut p = x;
             for i in 0..N {
-                xs[i] = x[i].max(s(-87.0)).min(s(88.0));
+                xs[i] = x[i].max(s(EXP_LO)).min(s(EXP_HI));
             }
             for i in 0..N {
-                shifted[i] = xs[i].mul(s(LOG2E)).add(s(ROUND));
+                k[i] = xs[i].mul_add(s(LOG2E), s(ROUND)).sub(s(ROUND));
             }
             for i in 0..N {
-                let k = shifted[i].sub(s(ROUND));
-                r[i] = xs[i].sub(k.mul(s(LN2_HI))).sub(k.mul(s(LN2_LO)));
+                r[i] = k[i].mul_add(s(-LN2_HI), xs[i]);
+                r[i] = k[i].mul_add(s(-LN2_LO), r[i]);
             }
             for i in 0..N {
-                p[i] = s(1.987_569_2e-4);
+                p[i] = s(EXP_POLY[0]);
             }
-            for c in [
-                1.398_2e-3,
-                8.333_452e-3,
-                4.166_579_6e-2,
-                1.666_666_5e-1,
-                0.5,
-            ] {
+            for c in &EXP_POLY[1..] {
                 for i in 0..N {
-                    p[i] = p[i].mul(r[i]).add(s(c));
+                    p[i] = p[i].mul_add(r[i], s(*c));
                 }
             }
             let mut out = x;
             for i in 0..N {
-                let e = p[i].mul(r[i]).mul(r[i]).add(r[i]).add(s(1.0));
                 // SAFETY: see the module comment.
-                let scale = unsafe {
-                    let kbits = _mm512_sub_epi32(
-                        _mm512_castps_si512(shifted[i].0),
-                        _mm512_set1_epi32(ROUND.to_bits() as i32),
-                    );
-                    Z16(_mm512_castsi512_ps(_mm512_slli_epi32::<23>(
-                        _mm512_add_epi32(kbits, _mm512_set1_epi32(127)),
-                    )))
-                };
-                out[i] = e.mul(scale);
+                out[i] = Z16(unsafe { _mm512_scalef_ps(p[i].0, k[i].0) });
             }
             out
         }

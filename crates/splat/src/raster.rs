@@ -177,7 +177,7 @@ pub(crate) fn zeros<T: Copy>(n: usize, zero: T) -> Vec<T> {
 }
 
 /// Gaussians whose alphas on a row are computed side by side in the forward.
-const GROUP: usize = 4;
+const GROUP: usize = 8;
 
 /// How many tile-list entries ahead a Gaussian's data is requested.
 const PREFETCH_AHEAD: usize = 8;
@@ -248,7 +248,8 @@ fn path<T: Real>() -> Path {
         if f32 && std::arch::is_x86_feature_detected!("avx512f") && !simd_disabled() {
             return Path::Avx512;
         }
-        if std::arch::is_x86_feature_detected!("avx2") {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
             return Path::Avx2;
         }
     }
@@ -308,13 +309,15 @@ fn eval_n<T: Real, L: Lanes<T>, const N: usize>(
     let zero = L::zero();
     let mut power = [zero; N];
     for i in 0..N {
+        // power = -0.5 (A dx^2 + C dy^2) - B dx dy = dx (-A/2 dx - B dy) + (-C/2 dy) dy, with
+        // d = mean - pixel (halving and negating are exact).
         let s = ss[i];
+        let half = T::lit(-0.5);
         let dy = L::splat(s.my).sub(py);
-        let cdy = L::splat(s.cc).mul(dy).mul(dy);
-        let bdy = L::splat(s.cb).mul(dy);
         let dx = L::splat(s.mx).sub(px);
-        let quad = L::splat(s.ca).mul(dx).mul(dx).add(cdy);
-        power[i] = L::splat(T::lit(0.5)).mul(quad).neg().sub(bdy.mul(dx));
+        let inner = L::splat(half * s.ca).mul_add(dx, L::splat(-s.cb).mul(dy));
+        let cdy = L::splat(half * s.cc).mul(dy).mul(dy);
+        power[i] = dx.mul_add(inner, cdy);
     }
     let g = L::exp_n(power);
     let mut alpha = [zero; N];
@@ -433,7 +436,7 @@ pub fn forward<T: Real>(f: &Frame<T>) -> (Vec<T>, PixelState<T>) {
 }
 
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx2")]
+#[target_feature(enable = "avx512f,avx2,fma")]
 unsafe fn forward_band_avx512(
     f: &Frame<f32>,
     pad: &Padded<f32>,
@@ -445,7 +448,7 @@ unsafe fn forward_band_avx512(
 }
 
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,fma")]
 unsafe fn forward_band_avx2<T: Real>(
     f: &Frame<T>,
     pad: &Padded<T>,
@@ -733,7 +736,7 @@ impl<L> BwdScratch<L> {
 }
 
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx2")]
+#[target_feature(enable = "avx512f,avx2,fma")]
 unsafe fn backward_band_avx512<D: Blocks<Z16>>(
     f: &Frame<f32>,
     pad: &Padded<f32>,
@@ -746,7 +749,7 @@ unsafe fn backward_band_avx512<D: Blocks<Z16>>(
 }
 
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,fma")]
 unsafe fn backward_band_avx2<T: Real>(
     f: &Frame<T>,
     pad: &Padded<T>,

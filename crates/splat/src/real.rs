@@ -30,6 +30,9 @@ pub trait Real:
     /// exp for the compositing hot loop: branch-free so loops over pixels vectorise (f32), or
     /// the standard one (f64, where exactness matters more than speed).
     fn fexp(self) -> Self;
+    /// `self * a + b` with one rounding (a fused multiply-add; slow in software on CPUs
+    /// without FMA, which only the portable kernels would meet).
+    fn mul_add(self, a: Self, b: Self) -> Self;
     fn sqrt(self) -> Self;
     fn ceil(self) -> Self;
     fn floor(self) -> Self;
@@ -50,6 +53,10 @@ macro_rules! impl_real {
             #[inline(always)]
             fn as_f64(self) -> f64 {
                 self as f64
+            }
+            #[inline(always)]
+            fn mul_add(self, a: Self, b: Self) -> Self {
+                <$t>::mul_add(self, a, b)
             }
             #[inline(always)]
             fn sqrt(self) -> Self {
@@ -89,34 +96,51 @@ impl_real!(
     }
 );
 
-/// Branch-free single-precision exp (Cody-Waite range reduction and a degree-6 minimax
-/// polynomial, within ~2 ulp of the true value on [-87, 0]), vectorisable by the compiler.
+/// Branch-free single-precision exp (Cody-Waite range reduction and a degree-7 minimax
+/// polynomial in Horner form with fused multiply-adds, within ~2 ulp of the true value on
+/// [-87, 0]), vectorisable by the compiler. [`crate::lanes::Z16`] computes the same operations.
 #[inline(always)]
 pub fn exp_f32(x: f32) -> f32 {
-    const LOG2E: f32 = std::f32::consts::LOG2_E;
-    const LN2_HI: f32 = 0.693_359_4;
-    const LN2_LO: f32 = -2.121_944_4e-4;
-    // Adding and subtracting 1.5 * 2^23 rounds to the nearest integer without a branch.
-    const ROUND: f32 = 12_582_912.0;
     // max/min rather than clamp: clamp's NaN handling keeps the compiler from vectorising.
     #[allow(clippy::manual_clamp)]
-    let x = x.max(-87.0).min(88.0);
-    let shifted = x * LOG2E + ROUND;
+    let x = x.max(EXP_LO).min(EXP_HI);
+    // Adding and subtracting 1.5 * 2^23 rounds to the nearest integer without a branch.
+    let shifted = x.mul_add(LOG2E, ROUND);
     let k = shifted - ROUND;
-    let r = x - k * LN2_HI - k * LN2_LO;
-    let mut p = 1.987_569_2e-4_f32;
-    p = p * r + 1.398_2e-3;
-    p = p * r + 8.333_452e-3;
-    p = p * r + 4.166_579_6e-2;
-    p = p * r + 1.666_666_5e-1;
-    p = p * r + 0.5;
-    let e = p * r * r + r + 1.0;
+    let r = k.mul_add(-LN2_HI, x);
+    let r = k.mul_add(-LN2_LO, r);
+    let mut p = EXP_POLY[0];
+    for c in &EXP_POLY[1..] {
+        p = p.mul_add(r, *c);
+    }
     // The low mantissa bits of `shifted` hold k itself (offset by ROUND's bit pattern), so the
     // exponent of 2^k comes from integer arithmetic that vectorises, unlike a float-to-int cast.
+    // k is in [-126, 127], so 2^k is a normal number and the product is one rounding, like
+    // the AVX-512 `scalef`.
     let kbits = shifted.to_bits().wrapping_sub(ROUND.to_bits());
     let scale = f32::from_bits(kbits.wrapping_add(127) << 23);
-    e * scale
+    p * scale
 }
+
+/// Range of [`exp_f32`]'s argument (outside, it is clamped; alphas there are far below 1/255).
+pub const EXP_LO: f32 = -87.0;
+pub const EXP_HI: f32 = 88.0;
+pub const LOG2E: f32 = std::f32::consts::LOG2_E;
+/// ln 2 in two parts: the first has few enough mantissa bits that k * LN2_HI is exact.
+pub const LN2_HI: f32 = 0.693_359_4;
+pub const LN2_LO: f32 = -2.121_944_4e-4;
+pub const ROUND: f32 = 12_582_912.0;
+/// exp(r) on [-ln2/2, ln2/2], highest power first: r^7/5040 ... r + 1 (minimax-adjusted).
+pub const EXP_POLY: [f32; 8] = [
+    1.987_569_2e-4,
+    1.398_2e-3,
+    8.333_452e-3,
+    4.166_579_6e-2,
+    1.666_666_5e-1,
+    0.5,
+    1.0,
+    1.0,
+];
 
 #[cfg(test)]
 mod tests {
