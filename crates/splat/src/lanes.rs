@@ -83,6 +83,20 @@ pub trait Lanes<T: Real>: Copy {
     fn idx_gt(cur: Self::Idx, k: u32) -> Mask;
     fn idx_load_first(s: &[u32]) -> Self::Idx;
     fn idx_store_masked(cur: Self::Idx, d: &mut [u32], m: Mask);
+    /// Writes, in order, every position `i` with `masks[i] & bit != 0` to the front of `out`
+    /// (which must hold `masks.len() + 16` values; what follows the positions is scratch) and
+    /// returns how many there are.
+    #[inline(always)]
+    fn positions_with(masks: &[u32], bit: u32, out: &mut [u32]) -> usize {
+        assert!(out.len() >= masks.len() + WIDTH);
+        let mut n = 0;
+        for (i, &m) in masks.iter().enumerate() {
+            // Written every time, kept only when the bit is set: no branch to mispredict.
+            out[n] = i as u32;
+            n += (m & bit != 0) as usize;
+        }
+        n
+    }
 }
 
 /// Portable lanes: a plain array.
@@ -472,6 +486,35 @@ mod avx512 {
             debug_assert!(m == 0 || d.len() > (15 - m.leading_zeros()) as usize);
             // SAFETY: as in store_masked.
             unsafe { _mm512_mask_storeu_epi32(d.as_mut_ptr() as *mut i32, m, cur) }
+        }
+        #[inline(always)]
+        fn positions_with(masks: &[u32], bit: u32, out: &mut [u32]) -> usize {
+            // Sixteen masks at a time: test the bit, compress the matching positions to the
+            // front of a register and store all 16 lanes (a compressing store to memory is
+            // microcoded and slow on some CPUs).
+            assert!(out.len() >= masks.len() + WIDTH);
+            let mut n = 0;
+            // SAFETY: see the module comment. Loads read lanes of `masks[i..]` only (the tail
+            // with a lane mask), and each store writes `out[n..n + 16]` with n <= i <
+            // masks.len(), inside `out`.
+            unsafe {
+                let bitv = _mm512_set1_epi32(bit as i32);
+                let mut pos =
+                    _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+                let step = _mm512_set1_epi32(WIDTH as i32);
+                let mut i = 0;
+                while i < masks.len() {
+                    let lanes = super::first(masks.len() - i);
+                    let v = _mm512_maskz_loadu_epi32(lanes, masks.as_ptr().add(i) as *const i32);
+                    let m = _mm512_test_epi32_mask(v, bitv);
+                    let packed = _mm512_maskz_compress_epi32(m, pos);
+                    _mm512_storeu_si512(out.as_mut_ptr().add(n) as *mut _, packed);
+                    n += m.count_ones() as usize;
+                    pos = _mm512_add_epi32(pos, step);
+                    i += WIDTH;
+                }
+            }
+            n
         }
     }
 }

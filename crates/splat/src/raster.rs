@@ -331,29 +331,39 @@ fn eval_n<T: Real, L: Lanes<T>, const N: usize>(
     (alpha, g, keep)
 }
 
-/// Lists, per pixel block of the tile, the tile-list positions of the Gaussians that can reach
-/// it.
+/// The 16-bit mask of the tile's pixel blocks a Gaussian can reach (bit `4 * row + column`).
 #[inline(always)]
-fn list_blocks<T: Real>(
+fn block_mask(range: Option<[(usize, usize); 2]>) -> u32 {
+    let Some([(r0, r1), (c0, c1)]) = range else {
+        return 0;
+    };
+    let cols = (2u32 << c1) - (1u32 << c0);
+    // 16^r0 + ... + 16^r1: one bit per block row, at the row's first block.
+    let rows = ((1u32 << (BLOCKS * (r1 + 1))) - (1u32 << (BLOCKS * r0))) / 15;
+    cols * rows
+}
+
+/// [`block_mask`] of every Gaussian of a tile list. (A plain loop: a closure would not inherit
+/// the kernel's target features, and floor/ceil would become library calls.)
+#[inline(always)]
+fn block_masks<T: Real>(
     f: &Frame<T>,
     list: &[u32],
     (x0, y0, tw, th): (usize, usize, usize, usize),
-    blocks: &mut [Vec<u32>; NBLK],
+    masks: &mut Vec<u32>,
 ) {
-    for b in blocks.iter_mut() {
-        b.clear();
-    }
+    masks.clear();
     for (k, &gi) in list.iter().enumerate() {
         if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
             prefetch(&f.proj.g, ahead as usize, 1);
         }
-        if let Some([(r0, r1), (c0, c1)]) = block_range(&f.proj.g[gi as usize], x0, y0, tw, th) {
-            for by in r0..=r1 {
-                for b in &mut blocks[by * BLOCKS + c0..=by * BLOCKS + c1] {
-                    b.push(k as u32);
-                }
-            }
-        }
+        masks.push(block_mask(block_range(
+            &f.proj.g[gi as usize],
+            x0,
+            y0,
+            tw,
+            th,
+        )));
     }
 }
 
@@ -365,7 +375,10 @@ pub(crate) struct BandOut<'a, T> {
 
 /// Forward scratch reused across the tiles of a band.
 struct FwdScratch<L> {
-    blocks: [Vec<u32>; NBLK],
+    /// Per Gaussian of the tile list: the blocks it can reach ([`block_mask`]).
+    masks: Vec<u32>,
+    /// Tile-list positions of the Gaussians that can reach the current block.
+    blk: Vec<u32>,
     /// Per Gaussian taken on the current block: its 16 weights (0 where not taken) ...
     weights: Vec<L>,
     /// ... and the offset of its (padded) features.
@@ -375,7 +388,8 @@ struct FwdScratch<L> {
 impl<L> FwdScratch<L> {
     fn new() -> Self {
         Self {
-            blocks: std::array::from_fn(|_| Vec::new()),
+            masks: Vec::new(),
+            blk: Vec::new(),
             weights: Vec::new(),
             feat_at: Vec::new(),
         }
@@ -491,13 +505,17 @@ fn forward_band<T: Real, L: Lanes<T>>(
         let x0 = tx * TILE;
         let tw = TILE.min(w - x0);
         let list = band.tile(tx);
-        list_blocks(f, list, (x0, y0, tw, th), &mut sc.blocks);
+        block_masks(f, list, (x0, y0, tw, th), &mut sc.masks);
+        if sc.blk.len() < list.len() + WIDTH {
+            sc.blk.resize(list.len() + WIDTH, 0);
+        }
         for bi in 0..NBLK {
             let Some(at) = BlockAt::<T>::new(bi, x0, y0, tw, th) else {
                 continue;
             };
             let (px, py) = (L::from_array(at.px), L::from_array(at.py));
-            let blk = &sc.blocks[bi];
+            let nb = L::positions_with(&sc.masks, 1 << bi, &mut sc.blk);
+            let blk = &sc.blk[..nb];
             if sc.weights.len() < blk.len() {
                 sc.weights.resize(blk.len(), L::zero());
                 sc.feat_at.resize(blk.len(), 0);
