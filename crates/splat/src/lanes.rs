@@ -564,6 +564,12 @@ mod tests {
             same("max", za.max(zb).to_array(), pa.max(pb).0);
             same("neg", za.neg().to_array(), pa.neg().0);
             same("exp", za.exp().to_array(), pa.exp().0);
+            let (zc, pc) = (Z16::load(&a), P16(a));
+            same(
+                "mul_add",
+                za.mul_add(zb, zc.neg()).to_array(),
+                pa.mul_add(pb, pc.neg()).0,
+            );
             same(
                 "select",
                 Z16::select(m, za, zb).to_array(),
@@ -597,6 +603,29 @@ mod tests {
             Z16::idx_store_masked(Z16::idx_set(m, k, iz), &mut oz, ALL);
             P16::<f32>::idx_store_masked(P16::<f32>::idx_set(m, k, ip), &mut op, ALL);
             assert_eq!(oz, op, "idx_set");
+        }
+    }
+
+    /// The compressing [`Z16::positions_with`] against the plain loop, on lists shorter than,
+    /// equal to and longer than a vector, for every block bit.
+    #[test]
+    fn avx512_positions_equal_array_positions() {
+        if !std::arch::is_x86_feature_detected!("avx512f") {
+            return;
+        }
+        let mut rng = Rng::new(11);
+        for len in [0usize, 1, 5, 15, 16, 17, 31, 33, 200] {
+            let masks: Vec<u32> = (0..len).map(|_| rng.below(1 << 16) as u32).collect();
+            for b in 0..WIDTH {
+                let (mut oz, mut op) = (vec![0u32; len + WIDTH], vec![0u32; len + WIDTH]);
+                let nz = Z16::positions_with(&masks, 1 << b, &mut oz);
+                let np = P16::<f32>::positions_with(&masks, 1 << b, &mut op);
+                let want: Vec<u32> = (0..len as u32)
+                    .filter(|&i| masks[i as usize] >> b & 1 != 0)
+                    .collect();
+                assert_eq!(&op[..np], &want[..], "array lanes, len {len}, bit {b}");
+                assert_eq!(&oz[..nz], &want[..], "AVX-512 lanes, len {len}, bit {b}");
+            }
         }
     }
 }

@@ -990,6 +990,24 @@ mod tests {
     use crate::project::{project, CamK, GEOM};
     use crate::testscene::{avatar_scene, Regime};
 
+    /// The mask of a block range has exactly the blocks of the range.
+    #[test]
+    fn block_mask_is_the_range() {
+        assert_eq!(block_mask(None), 0);
+        for (r0, r1, c0, c1) in (0..BLOCKS).flat_map(|r0| {
+            (r0..BLOCKS).flat_map(move |r1| {
+                (0..BLOCKS).flat_map(move |c0| (c0..BLOCKS).map(move |c1| (r0, r1, c0, c1)))
+            })
+        }) {
+            let want: u32 = (0..NBLK)
+                .filter(|b| (r0..=r1).contains(&(b / BLOCKS)) && (c0..=c1).contains(&(b % BLOCKS)))
+                .map(|b| 1 << b)
+                .sum();
+            let got = block_mask(Some([(r0, r1), (c0, c1)]));
+            assert_eq!(got, want, "rows {r0}..={r1}, columns {c0}..={c1}");
+        }
+    }
+
     /// Every pixel a Gaussian reaches (alpha >= 1/255, power <= 0, evaluated in f64 from the
     /// f32 screen-space values) lies in a block of its block range, on scenes with very
     /// anisotropic and tiny-quaternion Gaussians in both size regimes.
