@@ -4,9 +4,10 @@
 //! The kernels in [`crate::raster`] are written once against [`Lanes`] and compiled twice: with
 //! [`P16`] (plain arrays, any [`Real`], vectorised by the compiler where it can) and, on CPUs with
 //! AVX-512F, with [`Z16`] (one `__m512` register, f32 only). Every operation is an IEEE
-//! operation lane by lane with the same rounding in both (Rust never fuses a*b+c, `min`/`max`
-//! and comparisons are defined identically below, and the exp is the same polynomial), so both
-//! compilations give bit-identical results.
+//! operation lane by lane with the same rounding in both (Rust never fuses a*b+c on its own and
+//! both fuse exactly where `mul_add` says so, `min`/`max` and comparisons are defined
+//! identically below, and the exp is the same sequence of operations), so both compilations
+//! give bit-identical results.
 
 use crate::real::Real;
 

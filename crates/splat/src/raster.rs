@@ -176,7 +176,7 @@ pub(crate) fn zeros<T: Copy>(n: usize, zero: T) -> Vec<T> {
     v
 }
 
-/// Gaussians whose alphas on a row are computed side by side in the forward.
+/// Gaussians whose alphas on a block are computed side by side in the forward.
 const GROUP: usize = 8;
 
 /// How many tile-list entries ahead a Gaussian's data is requested.
