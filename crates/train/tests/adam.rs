@@ -124,7 +124,7 @@ fn quadratic_grads(vars: &[(String, Var)], step: usize, skip: Option<&str>) -> G
 }
 
 fn make_vars(seed: u64) -> Vec<(String, Var)> {
-    let mut rng = Rng(seed);
+    let mut rng = Rng::from_state(seed);
     NAMES
         .iter()
         .enumerate()
