@@ -55,8 +55,19 @@ pub trait Lanes<T: Real>: Copy {
     /// `self > o ? self : o` per lane (the second operand when either is NaN).
     fn max(self, o: Self) -> Self;
     fn neg(self) -> Self;
+    /// The correctly rounded square root per lane.
+    fn sqrt(self) -> Self;
+    /// Rounds up to an integer per lane.
+    fn ceil(self) -> Self;
+    /// The natural log of positive normal lanes to about 1e-6 relative, for bounds only: the
+    /// last bits may differ between the two kinds of lanes.
+    #[inline(always)]
+    fn ln_bound(self) -> Self {
+        Self::from_array(self.to_array().map(|x| T::lit(x.as_f64().ln())))
+    }
     /// `self * a + b` with one rounding.
     fn mul_add(self, a: Self, b: Self) -> Self;
+    fn eq(self, o: Self) -> Mask;
     fn le(self, o: Self) -> Mask;
     fn lt(self, o: Self) -> Mask;
     fn gt(self, o: Self) -> Mask;
@@ -84,6 +95,24 @@ pub trait Lanes<T: Real>: Copy {
     fn idx_gt(cur: Self::Idx, k: u32) -> Mask;
     fn idx_load_first(s: &[u32]) -> Self::Idx;
     fn idx_store_masked(cur: Self::Idx, d: &mut [u32], m: Mask);
+    /// The 16x16 transpose: lane `i` of result `j` is lane `j` of `rows[i]`.
+    #[inline(always)]
+    fn transpose(rows: [Self; WIDTH]) -> [Self; WIDTH] {
+        // (Plain loops: closures would not inherit the kernels' target features.)
+        let mut a = [[T::ZERO; WIDTH]; WIDTH];
+        for (i, r) in rows.iter().enumerate() {
+            a[i] = r.to_array();
+        }
+        let mut out = rows;
+        for (j, o) in out.iter_mut().enumerate() {
+            let mut col = [T::ZERO; WIDTH];
+            for i in 0..WIDTH {
+                col[i] = a[i][j];
+            }
+            *o = Self::from_array(col);
+        }
+        out
+    }
     /// Writes, in order, every position `i` with `masks[i] & bit != 0` to the front of `out`
     /// (which must hold `masks.len() + 16` values; what follows the positions is scratch) and
     /// returns how many there are.
@@ -191,12 +220,24 @@ impl<T: Real> Lanes<T> for P16<T> {
         P16(self.0.map(|a| -a))
     }
     #[inline(always)]
+    fn sqrt(self) -> Self {
+        P16(self.0.map(T::sqrt))
+    }
+    #[inline(always)]
+    fn ceil(self) -> Self {
+        P16(self.0.map(T::ceil))
+    }
+    #[inline(always)]
     fn mul_add(self, a: Self, b: Self) -> Self {
         let mut r = self.0;
         for i in 0..WIDTH {
             r[i] = self.0[i].mul_add(a.0[i], b.0[i]);
         }
         P16(r)
+    }
+    #[inline(always)]
+    fn eq(self, o: Self) -> Mask {
+        self.cmp(o, |a, b| a == b)
     }
     #[inline(always)]
     fn le(self, o: Self) -> Mask {
@@ -384,6 +425,51 @@ mod avx512 {
             Z16(unsafe { _mm512_fmadd_ps(self.0, a.0, b.0) })
         }
         #[inline(always)]
+        fn sqrt(self) -> Self {
+            // SAFETY: see the module comment.
+            Z16(unsafe { _mm512_sqrt_ps(self.0) })
+        }
+        #[inline(always)]
+        fn ceil(self) -> Self {
+            // SAFETY: see the module comment.
+            Z16(unsafe {
+                _mm512_roundscale_ps::<{ _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC }>(self.0)
+            })
+        }
+        #[inline(always)]
+        fn ln_bound(self) -> Self {
+            // x = m 2^e with m in [sqrt(1/2), sqrt(2)), then ln m = 2 atanh(s), s = (m-1)/(m+1),
+            // |s| < 0.172, from its odd series up to s^9 (next term < 3e-9).
+            // SAFETY: see the module comment.
+            unsafe {
+                let x = self.0;
+                let mut e = _mm512_getexp_ps(x);
+                let mut m = _mm512_getmant_ps::<_MM_MANT_NORM_1_2, _MM_MANT_SIGN_SRC>(x);
+                let big =
+                    _mm512_cmp_ps_mask::<_CMP_GT_OQ>(m, _mm512_set1_ps(std::f32::consts::SQRT_2));
+                m = _mm512_mask_mul_ps(m, big, m, _mm512_set1_ps(0.5));
+                e = _mm512_mask_add_ps(e, big, e, _mm512_set1_ps(1.0));
+                let one = _mm512_set1_ps(1.0);
+                let s = _mm512_div_ps(_mm512_sub_ps(m, one), _mm512_add_ps(m, one));
+                let s2 = _mm512_mul_ps(s, s);
+                let mut p = _mm512_set1_ps(1.0 / 9.0);
+                for c in [1.0 / 7.0, 1.0 / 5.0, 1.0 / 3.0, 1.0] {
+                    p = _mm512_fmadd_ps(p, s2, _mm512_set1_ps(c));
+                }
+                let ln_m = _mm512_mul_ps(_mm512_add_ps(s, s), p);
+                Z16(_mm512_fmadd_ps(
+                    e,
+                    _mm512_set1_ps(std::f32::consts::LN_2),
+                    ln_m,
+                ))
+            }
+        }
+        #[inline(always)]
+        fn eq(self, o: Self) -> Mask {
+            // SAFETY: see the module comment.
+            unsafe { _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(self.0, o.0) }
+        }
+        #[inline(always)]
         fn le(self, o: Self) -> Mask {
             // SAFETY: see the module comment.
             unsafe { _mm512_cmp_ps_mask::<_CMP_LE_OQ>(self.0, o.0) }
@@ -489,6 +575,48 @@ mod avx512 {
             unsafe { _mm512_mask_storeu_epi32(d.as_mut_ptr() as *mut i32, m, cur) }
         }
         #[inline(always)]
+        fn transpose(rows: [Self; WIDTH]) -> [Self; WIDTH] {
+            // Four rounds of 16 shuffles: pairs of floats, pairs of pairs (as f64), then the
+            // 128-bit quarters in two steps.
+            // SAFETY: see the module comment.
+            unsafe {
+                let mut r = [_mm512_setzero_ps(); WIDTH];
+                for (d, z) in r.iter_mut().zip(&rows) {
+                    *d = z.0;
+                }
+                let mut a = r;
+                for i in 0..8 {
+                    a[2 * i] = _mm512_unpacklo_ps(r[2 * i], r[2 * i + 1]);
+                    a[2 * i + 1] = _mm512_unpackhi_ps(r[2 * i], r[2 * i + 1]);
+                }
+                // b[4i + c]: in quarter q, rows 4i..4i+3 of column 4q + c.
+                let mut b = a;
+                let pd = _mm512_castps_pd;
+                let ps = _mm512_castpd_ps;
+                for i in 0..4 {
+                    let (x0, x1, x2, x3) = (a[4 * i], a[4 * i + 1], a[4 * i + 2], a[4 * i + 3]);
+                    b[4 * i] = ps(_mm512_unpacklo_pd(pd(x0), pd(x2)));
+                    b[4 * i + 1] = ps(_mm512_unpackhi_pd(pd(x0), pd(x2)));
+                    b[4 * i + 2] = ps(_mm512_unpacklo_pd(pd(x1), pd(x3)));
+                    b[4 * i + 3] = ps(_mm512_unpackhi_pd(pd(x1), pd(x3)));
+                }
+                // Result 4q + c gathers quarter q of b[c], b[4 + c], b[8 + c], b[12 + c].
+                let mut out = rows;
+                for c in 0..4 {
+                    let (x0, x1, x2, x3) = (b[c], b[4 + c], b[8 + c], b[12 + c]);
+                    let c0 = _mm512_shuffle_f32x4::<0x44>(x0, x1);
+                    let c1 = _mm512_shuffle_f32x4::<0xEE>(x0, x1);
+                    let c2 = _mm512_shuffle_f32x4::<0x44>(x2, x3);
+                    let c3 = _mm512_shuffle_f32x4::<0xEE>(x2, x3);
+                    out[c] = Z16(_mm512_shuffle_f32x4::<0x88>(c0, c2));
+                    out[4 + c] = Z16(_mm512_shuffle_f32x4::<0xDD>(c0, c2));
+                    out[8 + c] = Z16(_mm512_shuffle_f32x4::<0x88>(c1, c3));
+                    out[12 + c] = Z16(_mm512_shuffle_f32x4::<0xDD>(c1, c3));
+                }
+                out
+            }
+        }
+        #[inline(always)]
         fn positions_with(masks: &[u32], bit: u32, out: &mut [u32]) -> usize {
             // Sixteen masks at a time: test the bit, compress the matching positions to the
             // front of a register and store all 16 lanes (a compressing store to memory is
@@ -564,6 +692,10 @@ mod tests {
             same("min", za.min(zb).to_array(), pa.min(pb).0);
             same("max", za.max(zb).to_array(), pa.max(pb).0);
             same("neg", za.neg().to_array(), pa.neg().0);
+            same("sqrt", za.sqrt().to_array(), pa.sqrt().0);
+            same("ceil", za.ceil().to_array(), pa.ceil().0);
+            assert_eq!(za.eq(zb), pa.eq(pb), "eq");
+            assert_eq!(za.eq(za), pa.eq(pa), "eq (self)");
             same("exp", za.exp().to_array(), pa.exp().0);
             let (zc, pc) = (Z16::load(&a), P16(a));
             same(
@@ -586,6 +718,15 @@ mod tests {
             assert_eq!(za.gt(zb), pa.gt(pb), "gt");
             assert_eq!(za.ge(zb), pa.ge(pb), "ge");
             assert_eq!(za.hsum().to_bits(), pa.hsum().to_bits(), "hsum");
+            let rows: [[f32; WIDTH]; WIDTH] =
+                std::array::from_fn(|_| std::array::from_fn(|_| rng.range(-5.0, 5.0) as f32));
+            let tz = Z16::transpose(rows.map(|r| Z16::load(&r)));
+            let tp = P16::transpose(rows.map(P16));
+            for j in 0..WIDTH {
+                let want: [f32; WIDTH] = std::array::from_fn(|i| rows[i][j]);
+                same("transpose (arrays)", tp[j].0, want);
+                same("transpose", tz[j].to_array(), want);
+            }
             let n = round % (WIDTH + 1);
             same(
                 "load_first",
@@ -604,6 +745,31 @@ mod tests {
             Z16::idx_store_masked(Z16::idx_set(m, k, iz), &mut oz, ALL);
             P16::<f32>::idx_store_masked(P16::<f32>::idx_set(m, k, ip), &mut op, ALL);
             assert_eq!(oz, op, "idx_set");
+        }
+    }
+
+    /// [`Z16::ln_bound`] against f64 ln over the range the projection feeds it (255 times an
+    /// opacity) and beyond.
+    #[test]
+    fn avx512_ln_bound_is_close() {
+        if !std::arch::is_x86_feature_detected!("avx512f") {
+            return;
+        }
+        // Relative error allowed for a bound that is then inflated by 2%.
+        const LN_REL_TOL: f64 = 2e-6;
+        let mut x = 1.0f32;
+        while x < 1e6 {
+            let xs: [f32; WIDTH] = std::array::from_fn(|i| x * (1.0 + i as f32 * 0.013));
+            let got = Z16::load(&xs).ln_bound().to_array();
+            for (i, (&g, &xi)) in got.iter().zip(&xs).enumerate() {
+                let want = (xi as f64).ln();
+                let err = (g as f64 - want).abs() / want.abs().max(1.0);
+                assert!(
+                    err <= LN_REL_TOL,
+                    "lane {i}, x {xi}: expected {want}, got {g}"
+                );
+            }
+            x *= 1.37;
         }
     }
 

@@ -3,6 +3,7 @@
 //! conic, screen radius and tile rectangle; and its exact backward.
 
 use crate::camera::Camera;
+use crate::lanes::{Lanes, WIDTH};
 use crate::real::Real;
 use rayon::prelude::*;
 
@@ -242,11 +243,29 @@ pub fn project<T: Real>(cam: &CamK<T>, geom: &[T]) -> Projected<T> {
     let mut radius = vec![0u32; n];
     let mut rect = vec![[0u16; 4]; n];
     let avx2 = has_avx2();
+    let cam32 = as_f32_cam(cam).filter(|_| has_avx512());
     g.par_chunks_mut(PROJECT_BLOCK)
         .zip(radius.par_chunks_mut(PROJECT_BLOCK))
         .zip(rect.par_chunks_mut(PROJECT_BLOCK))
         .zip(geom.par_chunks(PROJECT_BLOCK * GEOM))
         .for_each(|(((s, r), rc), gm)| {
+            #[cfg(target_arch = "x86_64")]
+            if let Some(cam32) = cam32 {
+                // SAFETY: T is f32 (as_f32_cam), so the slices are f32 slices of the same
+                // lengths; the CPU has AVX-512F (has_avx512).
+                return unsafe {
+                    project_block_avx512(
+                        cam32,
+                        std::slice::from_raw_parts(gm.as_ptr().cast::<f32>(), gm.len()),
+                        std::slice::from_raw_parts_mut(
+                            s.as_mut_ptr().cast::<Splat2D<f32>>(),
+                            s.len(),
+                        ),
+                        r,
+                        rc,
+                    )
+                };
+            }
             #[cfg(target_arch = "x86_64")]
             if avx2 {
                 // SAFETY: the CPU supports AVX2 (has_avx2).
@@ -338,6 +357,53 @@ fn has_avx2() -> bool {
     }
 }
 
+/// The camera as `CamK<f32>` when `T` is `f32`.
+fn as_f32_cam<T: Real>(cam: &CamK<T>) -> Option<&CamK<f32>> {
+    (std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>())
+        // SAFETY: T and f32 are the same type, so the two are the same struct.
+        .then(|| unsafe { &*(cam as *const CamK<T>).cast::<CamK<f32>>() })
+}
+
+/// Whether the AVX-512 projection runs (not under `GAGAVATAR_NO_AVX512`, like the raster).
+fn has_avx512() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx512f") && !crate::raster::simd_disabled()
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// Sixteen Gaussians at a time in AVX-512 lanes ([`project_lanes`]), the rest one by one.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2,fma")]
+unsafe fn project_block_avx512(
+    cam: &CamK<f32>,
+    geom: &[f32],
+    g: &mut [Splat2D<f32>],
+    radius: &mut [u32],
+    rect: &mut [[u16; 4]],
+) {
+    let whole = g.len() / WIDTH * WIDTH;
+    for (((s, r), rc), gm) in g[..whole]
+        .chunks_exact_mut(WIDTH)
+        .zip(radius[..whole].chunks_exact_mut(WIDTH))
+        .zip(rect[..whole].chunks_exact_mut(WIDTH))
+        .zip(geom.chunks_exact(WIDTH * GEOM))
+    {
+        project_lanes::<f32, crate::lanes::Z16>(cam, gm, s, r, rc);
+    }
+    project_block(
+        cam,
+        &geom[whole * GEOM..],
+        &mut g[whole..],
+        &mut radius[whole..],
+        &mut rect[whole..],
+    );
+}
+
 /// [`project_block`] compiled with AVX2 (and so SSE4.1): floor and ceil become single
 /// instructions instead of libm calls (same results), about half the projection's time.
 #[cfg(target_arch = "x86_64")]
@@ -370,6 +436,191 @@ fn project_block<T: Real>(
     }
 }
 
+/// [`project_one`] of `WIDTH` Gaussians at once, one per lane, every operation the same and in
+/// the same order, so the results are bit-identical, except the block-visiting bound `cut`
+/// (and `ex`, `ey` from it), whose log is [`Lanes::ln_bound`] in f32: it is inflated far beyond
+/// that difference, so the same pixels are visited and the images do not change.
+#[inline(always)]
+fn project_lanes<T: Real, L: Lanes<T>>(
+    cam: &CamK<T>,
+    geom: &[T],
+    out: &mut [Splat2D<T>],
+    radius: &mut [u32],
+    rect: &mut [[u16; 4]],
+) {
+    assert!(geom.len() == WIDTH * GEOM && out.len() == WIDTH);
+    assert!(radius.len() == WIDTH && rect.len() == WIDTH);
+    let mut cols = [[T::ZERO; WIDTH]; GEOM];
+    for (i, row) in geom.chunks_exact(GEOM).enumerate() {
+        for (k, col) in cols.iter_mut().enumerate() {
+            col[i] = row[k];
+        }
+    }
+    // (Plain loops and no closures: closures would not inherit the kernel's target features.)
+    let mut v = [L::zero(); GEOM];
+    for k in 0..GEOM {
+        v[k] = L::from_array(cols[k]);
+    }
+    let s = L::splat;
+    // geometry()
+    let zero = L::zero();
+    let p = [v[0], v[1], v[2]];
+    let r = &cam.rot;
+    let mut t = [zero; 3];
+    for i in 0..3 {
+        t[i] = s(r[i][0])
+            .mul(p[0])
+            .add(s(r[i][1]).mul(p[1]))
+            .add(s(r[i][2]).mul(p[2]))
+            .add(s(cam.trans[i]));
+    }
+    let near = t[2].gt(s(T::lit(NEAR_CULL)));
+    let (qr, qx, qy, qz) = (v[7], v[8], v[9], v[10]);
+    let (one, two) = (s(T::ONE), s(T::lit(2.0)));
+    let rq = [
+        [
+            one.sub(two.mul(qy.mul(qy).add(qz.mul(qz)))),
+            two.mul(qx.mul(qy).sub(qr.mul(qz))),
+            two.mul(qx.mul(qz).add(qr.mul(qy))),
+        ],
+        [
+            two.mul(qx.mul(qy).add(qr.mul(qz))),
+            one.sub(two.mul(qx.mul(qx).add(qz.mul(qz)))),
+            two.mul(qy.mul(qz).sub(qr.mul(qx))),
+        ],
+        [
+            two.mul(qx.mul(qz).sub(qr.mul(qy))),
+            two.mul(qy.mul(qz).add(qr.mul(qx))),
+            one.sub(two.mul(qx.mul(qx).add(qy.mul(qy)))),
+        ],
+    ];
+    let scale = [v[4], v[5], v[6]];
+    let mut m = [[zero; 3]; 3];
+    for i in 0..3 {
+        for k in 0..3 {
+            m[i][k] = rq[i][k].mul(scale[k]);
+        }
+    }
+    let mut sigma = [[zero; 3]; 3];
+    for i in 0..3 {
+        for k in 0..3 {
+            sigma[i][k] = m[i][0]
+                .mul(m[k][0])
+                .add(m[i][1].mul(m[k][1]))
+                .add(m[i][2].mul(m[k][2]));
+        }
+    }
+    let tz = t[2];
+    let mut tc = [zero; 2];
+    for a in 0..2 {
+        let ratio = t[a].div(tz);
+        let (lo, hi) = (s(-cam.lim), s(cam.lim));
+        let rc = L::select(ratio.lt(lo), lo, L::select(ratio.gt(hi), hi, ratio));
+        tc[a] = rc.mul(tz);
+    }
+    let tz2 = tz.mul(tz);
+    let j = [
+        [s(cam.fx).div(tz), zero, s(cam.fx).mul(tc[0]).neg().div(tz2)],
+        [zero, s(cam.fy).div(tz), s(cam.fy).mul(tc[1]).neg().div(tz2)],
+    ];
+    let w = &cam.rot;
+    let mut pj = [[zero; 3]; 2];
+    let mut ps = [[zero; 3]; 2];
+    for i in 0..2 {
+        for k in 0..3 {
+            pj[i][k] = j[i][0]
+                .mul(s(w[0][k]))
+                .add(j[i][1].mul(s(w[1][k])))
+                .add(j[i][2].mul(s(w[2][k])));
+        }
+    }
+    for i in 0..2 {
+        for k in 0..3 {
+            ps[i][k] = pj[i][0]
+                .mul(sigma[0][k])
+                .add(pj[i][1].mul(sigma[1][k]))
+                .add(pj[i][2].mul(sigma[2][k]));
+        }
+    }
+    let mut abc = [zero; 3];
+    for (o, (u, v)) in abc.iter_mut().zip([(0, 0), (0, 1), (1, 1)]) {
+        let (u, v) = (&ps[u], &pj[v]);
+        *o = u[0].mul(v[0]).add(u[1].mul(v[1])).add(u[2].mul(v[2]));
+    }
+    let dil = s(T::lit(DILATION));
+    let (a, b, c) = (abc[0].add(dil), abc[1], abc[2].add(dil));
+    // project_one()
+    let det = a.mul(c).sub(b.mul(b));
+    let singular = det.eq(zero);
+    let (ca, cb, cc) = (c.div(det), b.neg().div(det), a.div(det));
+    let half = s(T::lit(0.5));
+    let mid = half.mul(a.add(c));
+    let lambda = mid.add(mid.mul(mid).sub(det).max(s(T::lit(0.1))).sqrt());
+    let radius_f = s(T::lit(3.0)).mul(lambda.sqrt()).ceil();
+    let ndc_x = s(cam.focal).mul(t[0].div(t[2]));
+    let ndc_y = s(cam.focal).mul(t[1].div(t[2]));
+    let mx = ndc_x.add(one).mul(s(cam.w)).sub(one).mul(half);
+    let my = ndc_y.add(one).mul(s(cam.h)).sub(one).mul(half);
+    let opacity = v[3];
+    let faint = opacity.lt(s(T::lit(crate::raster::MIN_ALPHA)));
+    let ln = s(T::lit(255.0)).mul(opacity).ln_bound().max(zero);
+    let cut = s(T::lit(2.0))
+        .mul(ln)
+        .mul(s(T::lit(CUT_INFLATE)))
+        .add(s(T::lit(CUT_PAD)));
+    let cut = L::select(faint, s(T::lit(-1.0)), cut);
+    let ey = cut.mul(c).max(zero).sqrt();
+    let ex = cut.mul(a).max(zero).sqrt();
+    let keep = near & !singular;
+    let (mx, my, ca, cb, cc) = (
+        mx.to_array(),
+        my.to_array(),
+        ca.to_array(),
+        cb.to_array(),
+        cc.to_array(),
+    );
+    let (opacity, cut, depth) = (opacity.to_array(), cut.to_array(), tz.to_array());
+    let (ey, ex, radius_f) = (ey.to_array(), ex.to_array(), radius_f.to_array());
+    for i in 0..WIDTH {
+        let culled = (Splat2D::default(), 0, [0; 4]);
+        (out[i], radius[i], rect[i]) = if keep >> i & 1 == 0 {
+            culled
+        } else {
+            let rad = radius_f[i].as_f64();
+            let (x0, x1) = tile_span(mx[i].as_f64(), rad, cam.grid_x);
+            let (y0, y1) = tile_span(my[i].as_f64(), rad, cam.grid_y);
+            if (x1 - x0) * (y1 - y0) == 0 {
+                culled
+            } else {
+                let g = Splat2D {
+                    mx: mx[i],
+                    my: my[i],
+                    ca: ca[i],
+                    cb: cb[i],
+                    cc: cc[i],
+                    opacity: opacity[i],
+                    cut: cut[i],
+                    depth: depth[i],
+                    ey: ey[i],
+                    ex: ex[i],
+                };
+                (g, rad as u32, [x0 as u16, x1 as u16, y0 as u16, y1 as u16])
+            }
+        };
+    }
+}
+
+/// Tiles `[lo, hi)` along one axis (of `grid`) touched by a splat of `radius` pixels around
+/// `centre`. The release truncates toward zero and clamps to [0, grid]; for clamped results
+/// this equals floor.
+#[inline(always)]
+fn tile_span(centre: f64, radius: f64, grid: usize) -> (usize, usize) {
+    let lo = ((centre - radius) / TILE as f64).floor();
+    let hi = ((centre + radius + (TILE - 1) as f64) / TILE as f64).floor();
+    let clampi = |v: f64| -> usize { v.clamp(0.0, grid as f64) as usize };
+    (clampi(lo), clampi(hi))
+}
+
 #[inline(always)]
 fn project_one<T: Real>(cam: &CamK<T>, g: &[T]) -> (Splat2D<T>, u32, [u16; 4]) {
     let culled = (Splat2D::default(), 0, [0; 4]);
@@ -392,16 +643,8 @@ fn project_one<T: Real>(cam: &CamK<T>, g: &[T]) -> (Splat2D<T>, u32, [u16; 4]) {
     let radius_f = (T::lit(3.0) * lambda.sqrt()).ceil();
     let (mx, my) = mean2d(cam, &geo.t);
     let radius = radius_f.as_f64();
-    // The release truncates toward zero and clamps to [0, grid]; for clamped results this equals
-    // floor.
-    let span = |centre: f64, grid: usize| -> (usize, usize) {
-        let lo = ((centre - radius) / TILE as f64).floor();
-        let hi = ((centre + radius + (TILE - 1) as f64) / TILE as f64).floor();
-        let clampi = |v: f64| -> usize { v.clamp(0.0, grid as f64) as usize };
-        (clampi(lo), clampi(hi))
-    };
-    let (x0, x1) = span(mx.as_f64(), cam.grid_x);
-    let (y0, y1) = span(my.as_f64(), cam.grid_y);
+    let (x0, x1) = tile_span(mx.as_f64(), radius, cam.grid_x);
+    let (y0, y1) = tile_span(my.as_f64(), radius, cam.grid_y);
     if (x1 - x0) * (y1 - y0) == 0 {
         return culled;
     }
@@ -572,4 +815,115 @@ pub fn project_backward_one<T: Real>(cam: &CamK<T>, g: &[T], d: &Grad2D<T>, out:
     out[8] = dqx;
     out[9] = dqy;
     out[10] = dqz;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::lanes::P16;
+    use crate::rng::Rng;
+
+    /// Random Gaussians with every case the projection branches on: behind the camera and at
+    /// the near plane, clamped tan ratios (far off to the side), off-screen, faint, tiny and
+    /// huge scales, tiny quaternions.
+    fn scene(n: usize, seed: u64) -> Vec<f32> {
+        let mut rng = Rng::new(seed);
+        let mut geom = Vec::with_capacity(n * GEOM);
+        for i in 0..n {
+            let spread = [0.5, 2.0, 9.0, 40.0][i % 4];
+            let mut mean = [0.0; 3].map(|_| rng.range(-spread, spread) as f32);
+            if i % 7 == 0 {
+                mean[2] = 8.8 + rng.range(-0.05, 0.05) as f32; // about the near plane
+            }
+            let opacity = [rng.range(0.0, 1.0), 0.001, 1.0 / 255.0, 1.0][i % 4] as f32;
+            let sc = [0.0005, 0.005, 0.05, 3.0][(i / 4) % 4];
+            let scale = [0.0; 3].map(|_| (sc * rng.range(0.2, 1.0)) as f32);
+            let qs = if i % 5 == 0 { 1e-4 } else { 1.0 };
+            let quat = [0.0; 4].map(|_| (qs * rng.normal()) as f32);
+            geom.extend_from_slice(&mean);
+            geom.push(opacity);
+            geom.extend_from_slice(&scale);
+            geom.extend_from_slice(&quat);
+        }
+        geom
+    }
+
+    fn check_lanes<L: Lanes<f32>>(what: &str) {
+        // Relative difference allowed in the block-visiting bound (its log is computed
+        // differently; the bound is inflated by 2%).
+        const CUT_REL_TOL: f32 = 1e-5;
+        let cam = Camera::from_transform_matrix(
+            &Camera::look_at_origin_matrix(9.0, 0.3, -0.2),
+            12.0,
+            200,
+            120,
+        )
+        .unwrap();
+        let k = CamK::<f32>::new(&cam);
+        let n = 64 * WIDTH;
+        let geom = scene(n, 7);
+        let mut g = vec![Splat2D::default(); n];
+        let mut radius = vec![0u32; n];
+        let mut rect = vec![[0u16; 4]; n];
+        for (((s, r), rc), gm) in g
+            .chunks_exact_mut(WIDTH)
+            .zip(radius.chunks_exact_mut(WIDTH))
+            .zip(rect.chunks_exact_mut(WIDTH))
+            .zip(geom.chunks_exact(WIDTH * GEOM))
+        {
+            project_lanes::<f32, L>(&k, gm, s, r, rc);
+        }
+        let mut visible = 0;
+        for i in 0..n {
+            let (want, want_r, want_rect) = project_one(&k, &geom[i * GEOM..(i + 1) * GEOM]);
+            let got = &g[i];
+            assert_eq!(radius[i], want_r, "{what}: radius of Gaussian {i}");
+            assert_eq!(rect[i], want_rect, "{what}: rect of Gaussian {i}");
+            let exact = [
+                ("mx", got.mx, want.mx),
+                ("my", got.my, want.my),
+                ("ca", got.ca, want.ca),
+                ("cb", got.cb, want.cb),
+                ("cc", got.cc, want.cc),
+                ("opacity", got.opacity, want.opacity),
+                ("depth", got.depth, want.depth),
+            ];
+            for (name, a, b) in exact {
+                assert_eq!(
+                    a.to_bits(),
+                    b.to_bits(),
+                    "{what}: {name} of Gaussian {i}: expected {b}, got {a}"
+                );
+            }
+            for (name, a, b) in [
+                ("cut", got.cut, want.cut),
+                ("ex", got.ex, want.ex),
+                ("ey", got.ey, want.ey),
+            ] {
+                assert!(
+                    (a - b).abs() <= CUT_REL_TOL * b.abs().max(1.0),
+                    "{what}: {name} of Gaussian {i}: expected {b}, got {a}"
+                );
+            }
+            visible += (want_r > 0) as usize;
+        }
+        // The scene must exercise both outcomes.
+        assert!(visible > n / 8 && visible < n, "{visible} of {n} visible");
+    }
+
+    #[test]
+    fn lanes_projection_equals_one_by_one() {
+        check_lanes::<P16<f32>>("array lanes");
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx512f") {
+            // SAFETY: the CPU has AVX-512F.
+            unsafe { check_avx512() };
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    unsafe fn check_avx512() {
+        check_lanes::<crate::lanes::Z16>("AVX-512 lanes");
+    }
 }

@@ -17,6 +17,7 @@ use crate::lanes::{Lanes, Mask, ALL, P16, WIDTH};
 use crate::project::{Projected, Splat2D, TILE};
 use crate::real::Real;
 use rayon::prelude::*;
+use std::mem::MaybeUninit;
 
 /// Alpha is clamped to this value so a single Gaussian never makes a pixel fully opaque.
 pub const MAX_ALPHA: f64 = 0.99;
@@ -132,10 +133,12 @@ impl<T: Real> BlockAt<T> {
         })
     }
 
-    /// Writes the block's lanes into a row-major plane of width `w` whose row 0 is tile row 0.
-    /// (Whole block rows are copied with a constant length: a variable one is a memmove call.)
+    /// Writes the block's lanes into a row-major plane of width `w` whose row 0 is tile row 0
+    /// (of output not yet initialised: see [`forward`]). (Whole block rows are copied with a
+    /// constant length: a variable one is a memmove call.)
     #[inline(always)]
-    fn put<V: Copy>(&self, lanes: &[V; WIDTH], plane: &mut [V], w: usize, x0: usize) {
+    fn put<V: Copy>(&self, lanes: &[V; WIDTH], plane: &mut [MaybeUninit<V>], w: usize, x0: usize) {
+        let lanes = lanes.map(MaybeUninit::new);
         for r in 0..self.rows {
             let o = (self.oy + r) * w + x0 + self.ox;
             if self.cols == BLOCK {
@@ -237,19 +240,21 @@ enum Path {
 }
 
 /// `GAGAVATAR_NO_AVX512=1` forces the array kernels (to compare paths or debug).
-fn simd_disabled() -> bool {
+pub(crate) fn simd_disabled() -> bool {
     std::env::var_os("GAGAVATAR_NO_AVX512").is_some_and(|v| v != "0")
 }
 
 fn path<T: Real>() -> Path {
     #[cfg(target_arch = "x86_64")]
     {
+        use std::arch::is_x86_feature_detected as has;
+        // Bit counts and scans in single instructions (the block lists count bits).
+        let vec2 = has!("avx2") && has!("fma") && has!("popcnt") && has!("bmi1") && has!("bmi2");
         let f32 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>();
-        if f32 && std::arch::is_x86_feature_detected!("avx512f") && !simd_disabled() {
+        if f32 && vec2 && has!("avx512f") && !simd_disabled() {
             return Path::Avx512;
         }
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
-        {
+        if vec2 {
             return Path::Avx2;
         }
     }
@@ -368,9 +373,9 @@ fn block_masks<T: Real>(
 }
 
 pub(crate) struct BandOut<'a, T> {
-    image: Vec<&'a mut [T]>,
-    final_t: &'a mut [T],
-    n_contrib: &'a mut [u32],
+    image: Vec<&'a mut [MaybeUninit<T>]>,
+    final_t: &'a mut [MaybeUninit<T>],
+    n_contrib: &'a mut [MaybeUninit<u32>],
 }
 
 /// Forward scratch reused across the tiles of a band.
@@ -399,58 +404,102 @@ impl<L> FwdScratch<L> {
 /// Composites one image; returns `[C, H, W]` and the per-pixel state.
 pub fn forward<T: Real>(f: &Frame<T>) -> (Vec<T>, PixelState<T>) {
     let (w, h, c) = (f.width, f.height, f.channels);
-    // Only ever written, so calloc'ed memory costs nothing extra here (see [`zeros`]).
-    let mut image = vec![T::ZERO; c * h * w];
-    let mut final_t = vec![T::ZERO; h * w];
-    let mut n_contrib = vec![0u32; h * w];
-    let outs: Vec<BandOut<T>> = band_slices(&mut image, c, h, w)
+    // The outputs are written once, block by block, and never read here, so they start
+    // uninitialised: zeroing first would be one more pass over 32 MB (and the blocks' writes
+    // then fetch the zeroed lines back).
+    let mut image: Vec<T> = Vec::with_capacity(c * h * w);
+    let mut final_t: Vec<T> = Vec::with_capacity(h * w);
+    let mut n_contrib: Vec<u32> = Vec::with_capacity(h * w);
+    let outs: Vec<BandOut<T>> = band_slices(&mut image.spare_capacity_mut()[..c * h * w], c, h, w)
         .into_iter()
-        .zip(final_t.chunks_mut(TILE * w))
-        .zip(n_contrib.chunks_mut(TILE * w))
+        .zip(final_t.spare_capacity_mut()[..h * w].chunks_mut(TILE * w))
+        .zip(n_contrib.spare_capacity_mut()[..h * w].chunks_mut(TILE * w))
         .map(|((image, final_t), n_contrib)| BandOut {
             image,
             final_t,
             n_contrib,
         })
         .collect();
+    let bands = outs.len();
     let pad = Padded::new(f);
+    let cost = |ty: usize| f.bins.bands[ty].ids.len();
     match (path::<T>(), as_f32(f)) {
         #[cfg(target_arch = "x86_64")]
         (Path::Avx512, Some(f32f)) => {
             // SAFETY: T is f32 (as_f32), so Padded<T> is Padded<f32>.
             let pad32 = unsafe { &*(&pad as *const Padded<T>).cast::<Padded<f32>>() };
-            outs.into_par_iter()
-                .enumerate()
-                .for_each_init(FwdScratch::new, |sc, (ty, out)| {
-                    // SAFETY: T is f32 (as_f32), so BandOut<T> is BandOut<f32>; the CPU has
-                    // AVX-512F (path).
-                    unsafe {
-                        let out = std::mem::transmute::<BandOut<T>, BandOut<f32>>(out);
-                        forward_band_avx512(f32f, pad32, ty, out, sc)
-                    }
-                })
+            heaviest_first(outs, cost, FwdScratch::new, |sc, ty, out| {
+                // SAFETY: T is f32 (as_f32), so BandOut<T> is BandOut<f32>; the CPU has
+                // AVX-512F, AVX2, FMA, POPCNT, BMI1 and BMI2 (path).
+                unsafe {
+                    let out = std::mem::transmute::<BandOut<T>, BandOut<f32>>(out);
+                    forward_band_avx512(f32f, pad32, ty, out, sc)
+                }
+            })
         }
         #[cfg(target_arch = "x86_64")]
-        (Path::Avx2, _) => {
-            outs.into_par_iter()
-                .enumerate()
-                .for_each_init(FwdScratch::new, |sc, (ty, out)| {
-                    // SAFETY: the CPU has AVX2 (path).
-                    unsafe { forward_band_avx2(f, &pad, ty, out, sc) }
-                })
-        }
-        _ => outs
-            .into_par_iter()
-            .enumerate()
-            .for_each_init(FwdScratch::new, |sc, (ty, out)| {
-                forward_band::<T, P16<T>>(f, &pad, ty, out, sc)
-            }),
+        (Path::Avx2, _) => heaviest_first(outs, cost, FwdScratch::new, |sc, ty, out| {
+            // SAFETY: the CPU has AVX2, FMA, POPCNT, BMI1 and BMI2 (path).
+            unsafe { forward_band_avx2(f, &pad, ty, out, sc) }
+        }),
+        _ => heaviest_first(outs, cost, FwdScratch::new, |sc, ty, out| {
+            forward_band::<T, P16<T>>(f, &pad, ty, out, sc)
+        }),
+    }
+    assert_eq!(bands, h.div_ceil(TILE));
+    // SAFETY: every band ran (`heaviest_first` hands out every item), and each band wrote
+    // every element of its rows: all its tiles, all their blocks inside the image, all rows
+    // and columns of each block inside the image, and every channel (`forward_band`).
+    unsafe {
+        image.set_len(c * h * w);
+        final_t.set_len(h * w);
+        n_contrib.set_len(h * w);
     }
     (image, PixelState { final_t, n_contrib })
 }
 
+/// Runs `work(scratch, i, items[i])` for every item on every thread of the current pool,
+/// each thread taking the costliest item left next (a thread's `scratch` comes from `init`).
+/// Bands differ in cost by an order of magnitude (the head sits in the middle of the image),
+/// and a costly band started last leaves the other threads idle until it ends.
+fn heaviest_first<I: Send, S>(
+    items: Vec<I>,
+    cost: impl Fn(usize) -> usize,
+    init: impl Fn() -> S + Sync,
+    work: impl Fn(&mut S, usize, I) + Sync,
+) {
+    let mut order: Vec<usize> = (0..items.len()).collect();
+    order.sort_by_key(|&i| std::cmp::Reverse(cost(i)));
+    let slots: Vec<std::sync::Mutex<Option<I>>> = items
+        .into_iter()
+        .map(|i| std::sync::Mutex::new(Some(i)))
+        .collect();
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    rayon::broadcast(|_| {
+        let mut scratch = None;
+        loop {
+            let k = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let Some(&i) = order.get(k) else {
+                break;
+            };
+            // Each index is handed out once, so the slot is full; a poisoned lock (a panic
+            // elsewhere, which reaches the caller anyway) still holds the item.
+            let item = match slots[i].lock() {
+                Ok(mut g) => g.take(),
+                Err(p) => p.into_inner().take(),
+            };
+            if let Some(item) = item {
+                work(scratch.get_or_insert_with(&init), i, item);
+            }
+        }
+    });
+    debug_assert!(slots
+        .iter()
+        .all(|s| s.lock().map(|g| g.is_none()).unwrap_or(true)));
+}
+
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx2,fma")]
+#[target_feature(enable = "avx512f,avx2,fma,popcnt,bmi1,bmi2")]
 unsafe fn forward_band_avx512(
     f: &Frame<f32>,
     pad: &Padded<f32>,
@@ -462,7 +511,7 @@ unsafe fn forward_band_avx512(
 }
 
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
+#[target_feature(enable = "avx2,fma,popcnt,bmi1,bmi2")]
 unsafe fn forward_band_avx2<T: Real>(
     f: &Frame<T>,
     pad: &Padded<T>,
@@ -666,7 +715,7 @@ pub fn backward<T: Real>(f: &Frame<T>, state: &PixelState<T>, grad: &[T], n: usi
                 )
             };
             let run = |sc: &mut BwdScratch<Z16>, ty: usize| -> BandGrads<f32> {
-                // SAFETY: the CPU has AVX-512F (path).
+                // SAFETY: the CPU has AVX-512F, AVX2, FMA, POPCNT, BMI1 and BMI2 (path).
                 unsafe {
                     match nb {
                         1 => backward_band_avx512::<[Z16; 1]>(f32f, pad32, st32, grad32, ty, sc),
@@ -690,7 +739,7 @@ pub fn backward<T: Real>(f: &Frame<T>, state: &PixelState<T>, grad: &[T], n: usi
             .map_init(
                 || BwdScratch::new(n),
                 |sc, ty| {
-                    // SAFETY: the CPU has AVX2 (path).
+                    // SAFETY: the CPU has AVX2, FMA, POPCNT, BMI1 and BMI2 (path).
                     unsafe { backward_band_avx2(f, &pad, state, grad, ty, sc) }
                 },
             )
@@ -754,7 +803,7 @@ impl<L> BwdScratch<L> {
 }
 
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx2,fma")]
+#[target_feature(enable = "avx512f,avx2,fma,popcnt,bmi1,bmi2")]
 unsafe fn backward_band_avx512<D: Blocks<Z16>>(
     f: &Frame<f32>,
     pad: &Padded<f32>,
@@ -767,7 +816,7 @@ unsafe fn backward_band_avx512<D: Blocks<Z16>>(
 }
 
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
+#[target_feature(enable = "avx2,fma,popcnt,bmi1,bmi2")]
 unsafe fn backward_band_avx2<T: Real>(
     f: &Frame<T>,
     pad: &Padded<T>,
@@ -850,18 +899,12 @@ fn backward_band<T: Real, L: Lanes<T>, D: Blocks<L>>(
                 dpc[bi * cpad + ch] = L::from_array(at.get(g, w, x0, T::ZERO));
             }
             for j in 0..nb {
-                // A 16x16 transpose to channels in lanes. (Plain loops: closures would not
-                // inherit the kernel's target features.)
-                let mut m = [[T::ZERO; WIDTH]; WIDTH];
-                for (i, r) in m.iter_mut().enumerate() {
-                    *r = dpc[bi * cpad + j * WIDTH + i].to_array();
-                }
-                for l in 0..WIDTH {
-                    let mut col = [T::ZERO; WIDTH];
-                    for i in 0..WIDTH {
-                        col[i] = m[i][l];
-                    }
-                    dpp[(bi * WIDTH + l) * nb + j] = L::from_array(col);
+                // To channels in lanes.
+                let mut rows = [L::zero(); WIDTH];
+                rows.copy_from_slice(&dpc[bi * cpad + j * WIDTH..bi * cpad + (j + 1) * WIDTH]);
+                let cols = L::transpose(rows);
+                for (l, col) in cols.iter().enumerate() {
+                    dpp[(bi * WIDTH + l) * nb + j] = *col;
                 }
             }
             let mut dot = L::zero();
