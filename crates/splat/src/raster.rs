@@ -1059,11 +1059,8 @@ mod tests {
         for regime in [Regime::Small, Regime::Large] {
             let (s, cam) = avatar_scene(60, 800, 3, regime, 7);
             let mut geom = Vec::with_capacity(s.len() * GEOM);
-            for i in 0..s.len() {
-                geom.extend_from_slice(&s.means[i * 3..i * 3 + 3]);
-                geom.push(s.opacities[i]);
-                geom.extend_from_slice(&s.scales[i * 3..i * 3 + 3]);
-                geom.extend_from_slice(&s.rotations[i * 4..i * 4 + 4]);
+            for block in [&s.means, &s.opacities, &s.scales, &s.rotations] {
+                geom.extend_from_slice(block);
             }
             let k = CamK::<f32>::new(&cam);
             let proj = project(&k, &geom);

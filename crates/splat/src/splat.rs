@@ -401,7 +401,12 @@ pub fn splat(g: &Gaussians, background: &Tensor, cameras: &[Camera]) -> Result<S
     ] {
         check_finite(t, name)?;
     }
-    let geom = Tensor::cat(&[&means, &opac, &scales, &rots], 2)?.contiguous()?;
+    // `[B, 11 N]`: per item, the four blocks of [`GEOM`].
+    let flat = [&means, &opac, &scales, &rots]
+        .into_iter()
+        .map(|t| t.flatten_from(1))
+        .collect::<candle_core::Result<Vec<_>>>()?;
+    let geom = Tensor::cat(&flat, 1)?.contiguous()?;
     let features = features.contiguous()?;
     let background = background.contiguous()?;
     let state = Arc::new(Mutex::new(None));
