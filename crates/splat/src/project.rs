@@ -5,6 +5,7 @@
 use crate::camera::Camera;
 use crate::lanes::{Lanes, WIDTH};
 use crate::real::Real;
+use std::mem::MaybeUninit;
 use rayon::prelude::*;
 
 pub const TILE: usize = 16;
@@ -336,14 +337,17 @@ impl<'a, T: Copy> GeomOut<'a, T> {
 pub fn project<T: Real>(cam: &CamK<T>, geom: &[T]) -> Projected<T> {
     let geom = GeomIn::split(geom);
     let n = geom.len();
-    let mut g = vec![Splat2D::default(); n];
-    let mut radius = vec![0u32; n];
-    let mut rect = vec![[0u16; 4]; n];
+    // Every element is written below (each block writes all of its Gaussians), so the
+    // outputs start uninitialised rather than being cleared first.
+    let mut g: Vec<Splat2D<T>> = Vec::with_capacity(n);
+    let mut radius: Vec<u32> = Vec::with_capacity(n);
+    let mut rect: Vec<[u16; 4]> = Vec::with_capacity(n);
     let avx2 = has_avx2();
     let cam32 = as_f32_cam(cam).filter(|_| has_avx512());
-    g.par_chunks_mut(PROJECT_BLOCK)
-        .zip(radius.par_chunks_mut(PROJECT_BLOCK))
-        .zip(rect.par_chunks_mut(PROJECT_BLOCK))
+    g.spare_capacity_mut()[..n]
+        .par_chunks_mut(PROJECT_BLOCK)
+        .zip(radius.spare_capacity_mut()[..n].par_chunks_mut(PROJECT_BLOCK))
+        .zip(rect.spare_capacity_mut()[..n].par_chunks_mut(PROJECT_BLOCK))
         .enumerate()
         .for_each(|(ci, ((s, r), rc))| {
             let lo = ci * PROJECT_BLOCK;
@@ -365,7 +369,7 @@ pub fn project<T: Real>(cam: &CamK<T>, geom: &[T]) -> Projected<T> {
                         cam32,
                         gm32,
                         std::slice::from_raw_parts_mut(
-                            s.as_mut_ptr().cast::<Splat2D<f32>>(),
+                            s.as_mut_ptr().cast::<MaybeUninit<Splat2D<f32>>>(),
                             s.len(),
                         ),
                         r,
@@ -380,6 +384,12 @@ pub fn project<T: Real>(cam: &CamK<T>, geom: &[T]) -> Projected<T> {
             }
             project_block(cam, gm, s, r, rc)
         });
+    // SAFETY: the loop above wrote all n elements of each (see the block functions).
+    unsafe {
+        g.set_len(n);
+        radius.set_len(n);
+        rect.set_len(n);
+    }
     Projected { g, radius, rect }
 }
 
@@ -502,9 +512,9 @@ fn has_avx512() -> bool {
 unsafe fn project_block_avx512(
     cam: &CamK<f32>,
     geom: GeomIn<f32>,
-    g: &mut [Splat2D<f32>],
-    radius: &mut [u32],
-    rect: &mut [[u16; 4]],
+    g: &mut [MaybeUninit<Splat2D<f32>>],
+    radius: &mut [MaybeUninit<u32>],
+    rect: &mut [MaybeUninit<[u16; 4]>],
 ) {
     let whole = g.len() / WIDTH * WIDTH;
     for (j, ((s, r), rc)) in g[..whole]
@@ -532,9 +542,9 @@ unsafe fn project_block_avx512(
 unsafe fn project_block_avx2<T: Real>(
     cam: &CamK<T>,
     geom: GeomIn<T>,
-    g: &mut [Splat2D<T>],
-    radius: &mut [u32],
-    rect: &mut [[u16; 4]],
+    g: &mut [MaybeUninit<Splat2D<T>>],
+    radius: &mut [MaybeUninit<u32>],
+    rect: &mut [MaybeUninit<[u16; 4]>],
 ) {
     project_block(cam, geom, g, radius, rect)
 }
@@ -543,9 +553,9 @@ unsafe fn project_block_avx2<T: Real>(
 fn project_block<T: Real>(
     cam: &CamK<T>,
     geom: GeomIn<T>,
-    g: &mut [Splat2D<T>],
-    radius: &mut [u32],
-    rect: &mut [[u16; 4]],
+    g: &mut [MaybeUninit<Splat2D<T>>],
+    radius: &mut [MaybeUninit<u32>],
+    rect: &mut [MaybeUninit<[u16; 4]>],
 ) {
     for (i, ((s, r), rc)) in g
         .iter_mut()
@@ -553,7 +563,10 @@ fn project_block<T: Real>(
         .zip(rect.iter_mut())
         .enumerate()
     {
-        (*s, *r, *rc) = project_one(cam, &geom.row(i));
+        let (si, ri, rci) = project_one(cam, &geom.row(i));
+        s.write(si);
+        r.write(ri);
+        rc.write(rci);
     }
 }
 
@@ -565,9 +578,9 @@ fn project_block<T: Real>(
 fn project_lanes<T: Real, L: Lanes<T>>(
     cam: &CamK<T>,
     geom: GeomIn<T>,
-    out: &mut [Splat2D<T>],
-    radius: &mut [u32],
-    rect: &mut [[u16; 4]],
+    out: &mut [MaybeUninit<Splat2D<T>>],
+    radius: &mut [MaybeUninit<u32>],
+    rect: &mut [MaybeUninit<[u16; 4]>],
 ) {
     assert!(geom.len() == WIDTH && out.len() == WIDTH);
     assert!(radius.len() == WIDTH && rect.len() == WIDTH);
@@ -705,7 +718,7 @@ fn project_lanes<T: Real, L: Lanes<T>>(
     let (ey, ex, radius_f) = (ey.to_array(), ex.to_array(), radius_f.to_array());
     for i in 0..WIDTH {
         let culled = (Splat2D::default(), 0, [0; 4]);
-        (out[i], radius[i], rect[i]) = if keep >> i & 1 == 0 {
+        let (oi, ri, rci) = if keep >> i & 1 == 0 {
             culled
         } else {
             let rad = radius_f[i].as_f64();
@@ -729,6 +742,9 @@ fn project_lanes<T: Real, L: Lanes<T>>(
                 (g, rad as u32, [x0 as u16, x1 as u16, y0 as u16, y1 as u16])
             }
         };
+        out[i].write(oi);
+        radius[i].write(ri);
+        rect[i].write(rci);
     }
 }
 
@@ -990,9 +1006,9 @@ mod tests {
         let n = 64 * WIDTH;
         let geom = scene(n, 7);
         let gin = GeomIn::split(&geom);
-        let mut g = vec![Splat2D::default(); n];
-        let mut radius = vec![0u32; n];
-        let mut rect = vec![[0u16; 4]; n];
+        let mut g = vec![MaybeUninit::new(Splat2D::default()); n];
+        let mut radius = vec![MaybeUninit::new(0u32); n];
+        let mut rect = vec![MaybeUninit::new([0u16; 4]); n];
         for (j, ((s, r), rc)) in g
             .chunks_exact_mut(WIDTH)
             .zip(radius.chunks_exact_mut(WIDTH))
@@ -1004,9 +1020,11 @@ mod tests {
         let mut visible = 0;
         for i in 0..n {
             let (want, want_r, want_rect) = project_one(&k, &gin.row(i));
-            let got = &g[i];
-            assert_eq!(radius[i], want_r, "{what}: radius of Gaussian {i}");
-            assert_eq!(rect[i], want_rect, "{what}: rect of Gaussian {i}");
+            // SAFETY: initialised above (and overwritten by project_lanes).
+            let (got, radius_i, rect_i) =
+                unsafe { (g[i].assume_init_ref(), radius[i].assume_init(), rect[i].assume_init()) };
+            assert_eq!(radius_i, want_r, "{what}: radius of Gaussian {i}");
+            assert_eq!(rect_i, want_rect, "{what}: rect of Gaussian {i}");
             let exact = [
                 ("mx", got.mx, want.mx),
                 ("my", got.my, want.my),
