@@ -39,7 +39,7 @@ pub fn depth_order<T: Real>(proj: &Projected<T>) -> Vec<(u32, [u16; 4])> {
         .iter()
         .enumerate()
         .filter(|(_, &r)| r > 0)
-        .map(|(i, _)| (proj.g[i].depth.as_f64().to_bits(), i as u32))
+        .map(|(i, _)| (proj.depth[i].as_f64().to_bits(), i as u32))
         .collect();
     radix_sort(keys)
         .into_iter()

@@ -5,8 +5,8 @@
 use crate::camera::Camera;
 use crate::lanes::{Lanes, WIDTH};
 use crate::real::Real;
-use std::mem::MaybeUninit;
 use rayon::prelude::*;
+use std::mem::MaybeUninit;
 
 pub const TILE: usize = 16;
 /// Gaussians at or nearer than this view depth are culled (the release's frustum test).
@@ -70,8 +70,10 @@ impl<T: Real> CamK<T> {
     }
 }
 
-/// One projected Gaussian, packed so the rasterizer touches a single cache line per Gaussian.
+/// One projected Gaussian as the rasterizer reads it: 32 bytes in f32, aligned, so a read
+/// never straddles two cache lines (its depth, only needed for sorting, lives apart).
 #[derive(Debug, Clone, Copy, Default)]
+#[repr(C, align(32))]
 pub struct Splat2D<T> {
     /// Pixel-space centre.
     pub mx: T,
@@ -81,15 +83,12 @@ pub struct Splat2D<T> {
     pub cb: T,
     pub cc: T,
     pub opacity: T,
-    /// Bound on `A dx^2 + 2 B dx dy + C dy^2` inside which alpha can reach 1/255 (slightly
-    /// inflated so rounding never excludes a pixel); negative when the Gaussian can never reach
-    /// 1/255.
-    pub cut: T,
-    pub depth: T,
-    /// Half-height of the rows the Gaussian can reach (`sqrt(cut * cov_yy)`: the ellipse
-    /// `d^T Q d <= cut` reaches that far above and below its centre); unused when `cut <= 0`.
+    /// Half-height of the rows the Gaussian can reach: `sqrt(cut * cov_yy)`, where `cut`
+    /// bounds `A dx^2 + 2 B dx dy + C dy^2` inside which alpha can reach 1/255 (slightly
+    /// inflated so rounding never excludes a pixel), and the ellipse `d^T Q d <= cut` reaches
+    /// that far above and below its centre. Negative when the Gaussian can never reach 1/255.
     pub ey: T,
-    /// Half-width of the columns it can reach, `sqrt(cut * cov_xx)`.
+    /// Half-width of the columns it can reach, `sqrt(cut * cov_xx)` (negative likewise).
     pub ex: T,
 }
 
@@ -97,6 +96,8 @@ pub struct Splat2D<T> {
 #[derive(Debug, Clone, Default)]
 pub struct Projected<T> {
     pub g: Vec<Splat2D<T>>,
+    /// View depth per Gaussian (0 when culled).
+    pub depth: Vec<T>,
     pub radius: Vec<u32>,
     /// Tile rectangle [x0, x1) x [y0, y1).
     pub rect: Vec<[u16; 4]>,
@@ -340,6 +341,7 @@ pub fn project<T: Real>(cam: &CamK<T>, geom: &[T]) -> Projected<T> {
     // Every element is written below (each block writes all of its Gaussians), so the
     // outputs start uninitialised rather than being cleared first.
     let mut g: Vec<Splat2D<T>> = Vec::with_capacity(n);
+    let mut depth: Vec<T> = Vec::with_capacity(n);
     let mut radius: Vec<u32> = Vec::with_capacity(n);
     let mut rect: Vec<[u16; 4]> = Vec::with_capacity(n);
     let avx2 = has_avx2();
@@ -348,8 +350,9 @@ pub fn project<T: Real>(cam: &CamK<T>, geom: &[T]) -> Projected<T> {
         .par_chunks_mut(PROJECT_BLOCK)
         .zip(radius.spare_capacity_mut()[..n].par_chunks_mut(PROJECT_BLOCK))
         .zip(rect.spare_capacity_mut()[..n].par_chunks_mut(PROJECT_BLOCK))
+        .zip(depth.spare_capacity_mut()[..n].par_chunks_mut(PROJECT_BLOCK))
         .enumerate()
-        .for_each(|(ci, ((s, r), rc))| {
+        .for_each(|(ci, (((s, r), rc), d))| {
             let lo = ci * PROJECT_BLOCK;
             let gm = geom.range(lo, lo + s.len());
             #[cfg(target_arch = "x86_64")]
@@ -372,6 +375,10 @@ pub fn project<T: Real>(cam: &CamK<T>, geom: &[T]) -> Projected<T> {
                             s.as_mut_ptr().cast::<MaybeUninit<Splat2D<f32>>>(),
                             s.len(),
                         ),
+                        std::slice::from_raw_parts_mut(
+                            d.as_mut_ptr().cast::<MaybeUninit<f32>>(),
+                            d.len(),
+                        ),
                         r,
                         rc,
                     )
@@ -380,17 +387,23 @@ pub fn project<T: Real>(cam: &CamK<T>, geom: &[T]) -> Projected<T> {
             #[cfg(target_arch = "x86_64")]
             if avx2 {
                 // SAFETY: the CPU supports AVX2 (has_avx2).
-                return unsafe { project_block_avx2(cam, gm, s, r, rc) };
+                return unsafe { project_block_avx2(cam, gm, s, d, r, rc) };
             }
-            project_block(cam, gm, s, r, rc)
+            project_block(cam, gm, s, d, r, rc)
         });
     // SAFETY: the loop above wrote all n elements of each (see the block functions).
     unsafe {
         g.set_len(n);
+        depth.set_len(n);
         radius.set_len(n);
         rect.set_len(n);
     }
-    Projected { g, radius, rect }
+    Projected {
+        g,
+        depth,
+        radius,
+        rect,
+    }
 }
 
 /// Backward of [`project`] for all Gaussians: `screen` holds each Gaussian's
@@ -513,23 +526,26 @@ unsafe fn project_block_avx512(
     cam: &CamK<f32>,
     geom: GeomIn<f32>,
     g: &mut [MaybeUninit<Splat2D<f32>>],
+    depth: &mut [MaybeUninit<f32>],
     radius: &mut [MaybeUninit<u32>],
     rect: &mut [MaybeUninit<[u16; 4]>],
 ) {
     let whole = g.len() / WIDTH * WIDTH;
-    for (j, ((s, r), rc)) in g[..whole]
+    for (j, (((s, d), r), rc)) in g[..whole]
         .chunks_exact_mut(WIDTH)
+        .zip(depth[..whole].chunks_exact_mut(WIDTH))
         .zip(radius[..whole].chunks_exact_mut(WIDTH))
         .zip(rect[..whole].chunks_exact_mut(WIDTH))
         .enumerate()
     {
         let gm = geom.range(j * WIDTH, (j + 1) * WIDTH);
-        project_lanes::<f32, crate::lanes::Z16>(cam, gm, s, r, rc);
+        project_lanes::<f32, crate::lanes::Z16>(cam, gm, s, d, r, rc);
     }
     project_block(
         cam,
         geom.range(whole, geom.len()),
         &mut g[whole..],
+        &mut depth[whole..],
         &mut radius[whole..],
         &mut rect[whole..],
     );
@@ -543,10 +559,11 @@ unsafe fn project_block_avx2<T: Real>(
     cam: &CamK<T>,
     geom: GeomIn<T>,
     g: &mut [MaybeUninit<Splat2D<T>>],
+    depth: &mut [MaybeUninit<T>],
     radius: &mut [MaybeUninit<u32>],
     rect: &mut [MaybeUninit<[u16; 4]>],
 ) {
-    project_block(cam, geom, g, radius, rect)
+    project_block(cam, geom, g, depth, radius, rect)
 }
 
 #[inline(always)]
@@ -554,31 +571,35 @@ fn project_block<T: Real>(
     cam: &CamK<T>,
     geom: GeomIn<T>,
     g: &mut [MaybeUninit<Splat2D<T>>],
+    depth: &mut [MaybeUninit<T>],
     radius: &mut [MaybeUninit<u32>],
     rect: &mut [MaybeUninit<[u16; 4]>],
 ) {
-    for (i, ((s, r), rc)) in g
+    for (i, (((s, d), r), rc)) in g
         .iter_mut()
+        .zip(depth.iter_mut())
         .zip(radius.iter_mut())
         .zip(rect.iter_mut())
         .enumerate()
     {
-        let (si, ri, rci) = project_one(cam, &geom.row(i));
+        let (si, di, ri, rci) = project_one(cam, &geom.row(i));
         s.write(si);
+        d.write(di);
         r.write(ri);
         rc.write(rci);
     }
 }
 
 /// [`project_one`] of `WIDTH` Gaussians at once, one per lane, every operation the same and in
-/// the same order, so the results are bit-identical, except the block-visiting bound `cut`
-/// (and `ex`, `ey` from it), whose log is [`Lanes::ln_bound`] in f32: it is inflated far beyond
+/// the same order, so the results are bit-identical, except the block-visiting bounds `ex`,
+/// `ey`, whose log is [`Lanes::ln_bound`] in f32: it is inflated far beyond
 /// that difference, so the same pixels are visited and the images do not change.
 #[inline(always)]
 fn project_lanes<T: Real, L: Lanes<T>>(
     cam: &CamK<T>,
     geom: GeomIn<T>,
     out: &mut [MaybeUninit<Splat2D<T>>],
+    depth: &mut [MaybeUninit<T>],
     radius: &mut [MaybeUninit<u32>],
     rect: &mut [MaybeUninit<[u16; 4]>],
 ) {
@@ -703,9 +724,9 @@ fn project_lanes<T: Real, L: Lanes<T>>(
         .mul(ln)
         .mul(s(T::lit(CUT_INFLATE)))
         .add(s(T::lit(CUT_PAD)));
-    let cut = L::select(faint, s(T::lit(-1.0)), cut);
-    let ey = cut.mul(c).max(zero).sqrt();
-    let ex = cut.mul(a).max(zero).sqrt();
+    let never = s(T::lit(-1.0));
+    let ey = L::select(faint, never, cut.mul(c).max(zero).sqrt());
+    let ex = L::select(faint, never, cut.mul(a).max(zero).sqrt());
     let keep = near & !singular;
     let (mx, my, ca, cb, cc) = (
         mx.to_array(),
@@ -714,11 +735,11 @@ fn project_lanes<T: Real, L: Lanes<T>>(
         cb.to_array(),
         cc.to_array(),
     );
-    let (opacity, cut, depth) = (opacity.to_array(), cut.to_array(), tz.to_array());
+    let (opacity, dep) = (opacity.to_array(), tz.to_array());
     let (ey, ex, radius_f) = (ey.to_array(), ex.to_array(), radius_f.to_array());
     for i in 0..WIDTH {
-        let culled = (Splat2D::default(), 0, [0; 4]);
-        let (oi, ri, rci) = if keep >> i & 1 == 0 {
+        let culled = (Splat2D::default(), T::ZERO, 0, [0; 4]);
+        let (oi, di, ri, rci) = if keep >> i & 1 == 0 {
             culled
         } else {
             let rad = radius_f[i].as_f64();
@@ -734,15 +755,15 @@ fn project_lanes<T: Real, L: Lanes<T>>(
                     cb: cb[i],
                     cc: cc[i],
                     opacity: opacity[i],
-                    cut: cut[i],
-                    depth: depth[i],
                     ey: ey[i],
                     ex: ex[i],
                 };
-                (g, rad as u32, [x0 as u16, x1 as u16, y0 as u16, y1 as u16])
+                let rc = [x0 as u16, x1 as u16, y0 as u16, y1 as u16];
+                (g, dep[i], rad as u32, rc)
             }
         };
         out[i].write(oi);
+        depth[i].write(di);
         radius[i].write(ri);
         rect[i].write(rci);
     }
@@ -760,8 +781,8 @@ fn tile_span(centre: f64, radius: f64, grid: usize) -> (usize, usize) {
 }
 
 #[inline(always)]
-fn project_one<T: Real>(cam: &CamK<T>, g: &[T]) -> (Splat2D<T>, u32, [u16; 4]) {
-    let culled = (Splat2D::default(), 0, [0; 4]);
+fn project_one<T: Real>(cam: &CamK<T>, g: &[T]) -> (Splat2D<T>, T, u32, [u16; 4]) {
+    let culled = (Splat2D::default(), T::ZERO, 0, [0; 4]);
     let mean = [g[0], g[1], g[2]];
     let opacity = g[3];
     let scale = [g[4], g[5], g[6]];
@@ -793,6 +814,13 @@ fn project_one<T: Real>(cam: &CamK<T>, g: &[T]) -> (Splat2D<T>, u32, [u16; 4]) {
     } else {
         2.0 * (255.0 * o).ln().max(0.0) * CUT_INFLATE + CUT_PAD
     };
+    let reach = |cov: T| {
+        if cut > 0.0 {
+            (cut * cov.as_f64()).max(0.0).sqrt()
+        } else {
+            -1.0
+        }
+    };
     (
         Splat2D {
             mx,
@@ -801,11 +829,10 @@ fn project_one<T: Real>(cam: &CamK<T>, g: &[T]) -> (Splat2D<T>, u32, [u16; 4]) {
             cb,
             cc,
             opacity,
-            cut: T::lit(cut),
-            depth: geo.t[2],
-            ey: T::lit((cut * c.as_f64()).max(0.0).sqrt()),
-            ex: T::lit((cut * a.as_f64()).max(0.0).sqrt()),
+            ey: T::lit(reach(c)),
+            ex: T::lit(reach(a)),
         },
+        geo.t[2],
         radius as u32,
         [x0 as u16, x1 as u16, y0 as u16, y1 as u16],
     )
@@ -1007,22 +1034,31 @@ mod tests {
         let geom = scene(n, 7);
         let gin = GeomIn::split(&geom);
         let mut g = vec![MaybeUninit::new(Splat2D::default()); n];
+        let mut depth = vec![MaybeUninit::new(0f32); n];
         let mut radius = vec![MaybeUninit::new(0u32); n];
         let mut rect = vec![MaybeUninit::new([0u16; 4]); n];
-        for (j, ((s, r), rc)) in g
+        for (j, (((s, d), r), rc)) in g
             .chunks_exact_mut(WIDTH)
+            .zip(depth.chunks_exact_mut(WIDTH))
             .zip(radius.chunks_exact_mut(WIDTH))
             .zip(rect.chunks_exact_mut(WIDTH))
             .enumerate()
         {
-            project_lanes::<f32, L>(&k, gin.range(j * WIDTH, (j + 1) * WIDTH), s, r, rc);
+            let gm = gin.range(j * WIDTH, (j + 1) * WIDTH);
+            project_lanes::<f32, L>(&k, gm, s, d, r, rc);
         }
         let mut visible = 0;
         for i in 0..n {
-            let (want, want_r, want_rect) = project_one(&k, &gin.row(i));
+            let (want, want_depth, want_r, want_rect) = project_one(&k, &gin.row(i));
             // SAFETY: initialised above (and overwritten by project_lanes).
-            let (got, radius_i, rect_i) =
-                unsafe { (g[i].assume_init_ref(), radius[i].assume_init(), rect[i].assume_init()) };
+            let (got, depth_i, radius_i, rect_i) = unsafe {
+                (
+                    g[i].assume_init_ref(),
+                    depth[i].assume_init(),
+                    radius[i].assume_init(),
+                    rect[i].assume_init(),
+                )
+            };
             assert_eq!(radius_i, want_r, "{what}: radius of Gaussian {i}");
             assert_eq!(rect_i, want_rect, "{what}: rect of Gaussian {i}");
             let exact = [
@@ -1032,7 +1068,7 @@ mod tests {
                 ("cb", got.cb, want.cb),
                 ("cc", got.cc, want.cc),
                 ("opacity", got.opacity, want.opacity),
-                ("depth", got.depth, want.depth),
+                ("depth", depth_i, want_depth),
             ];
             for (name, a, b) in exact {
                 assert_eq!(
@@ -1041,11 +1077,7 @@ mod tests {
                     "{what}: {name} of Gaussian {i}: expected {b}, got {a}"
                 );
             }
-            for (name, a, b) in [
-                ("cut", got.cut, want.cut),
-                ("ex", got.ex, want.ex),
-                ("ey", got.ey, want.ey),
-            ] {
+            for (name, a, b) in [("ex", got.ex, want.ex), ("ey", got.ey, want.ey)] {
                 assert!(
                     (a - b).abs() <= CUT_REL_TOL * b.abs().max(1.0),
                     "{what}: {name} of Gaussian {i}: expected {b}, got {a}"

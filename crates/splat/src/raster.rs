@@ -49,18 +49,12 @@ pub struct Frame<'a, T> {
     pub height: usize,
 }
 
-/// Tile-local inclusive range of pixel rows (`lo = my`, `reach = ey`) or columns (`mx`, `ex`),
-/// out of `n`, where the Gaussian can reach alpha >= 1/255 (a bound: the region behind it is
-/// inflated far beyond what rounding here can move).
+/// Tile-local inclusive range of pixel rows (`centre = my`, `half = ey`) or columns (`mx`,
+/// `ex`), out of `n`, where the Gaussian can reach alpha >= 1/255 (a bound: the region behind
+/// it is inflated far beyond what rounding here can move); `None` for a negative `half`.
 #[inline(always)]
-fn reach<T: Real>(
-    s: &Splat2D<T>,
-    centre: T,
-    half: T,
-    o: usize,
-    n: usize,
-) -> Option<(usize, usize)> {
-    if !(s.cut > T::ZERO) {
+fn reach<T: Real>(centre: T, half: T, o: usize, n: usize) -> Option<(usize, usize)> {
+    if !(half >= T::ZERO) {
         return None;
     }
     let m = centre - T::lit(o as f64);
@@ -87,8 +81,8 @@ pub(crate) fn block_range<T: Real>(
     tw: usize,
     th: usize,
 ) -> Option<[(usize, usize); 2]> {
-    let (r0, r1) = reach(s, s.my, s.ey, y0, th)?;
-    let (c0, c1) = reach(s, s.mx, s.ex, x0, tw)?;
+    let (r0, r1) = reach(s.my, s.ey, y0, th)?;
+    let (c0, c1) = reach(s.mx, s.ex, x0, tw)?;
     Some([(r0 / BLOCK, r1 / BLOCK), (c0 / BLOCK, c1 / BLOCK)])
 }
 
