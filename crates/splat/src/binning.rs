@@ -29,11 +29,37 @@ pub struct Bins {
     pub pairs: usize,
 }
 
-/// Visible Gaussians sorted front to back (ties by index), with their tile rectangles.
+/// Visible Gaussians sorted front to back, ties by index (the release's stable sort), with
+/// their tile rectangles (gathered once here, in parallel: read in depth order, the
+/// rectangles are scattered reads that miss the cache).
 pub fn depth_order<T: Real>(proj: &Projected<T>) -> Vec<(u32, [u16; 4])> {
-    // Depths of visible Gaussians are finite and > 0.2, so their f64 bit patterns sort like the
-    // values. The keys start in index order and the radix sort is stable, so ties keep index
-    // order (the release's stable sort).
+    if std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>() {
+        // A visible Gaussian's f32 depth is finite and > 0.2, so its bit pattern sorts like
+        // the value; with the index below it, every key is distinct and in the wanted order.
+        // Culled ones sort last (u64::MAX) and are cut off.
+        let keys: Vec<u64> = proj
+            .depth
+            .par_iter()
+            .zip(&proj.radius)
+            .enumerate()
+            .map(|(i, (d, &r))| {
+                let bits = (d.as_f64() as f32).to_bits() as u64;
+                if r > 0 {
+                    bits << 32 | i as u64
+                } else {
+                    u64::MAX
+                }
+            })
+            .collect();
+        let visible = proj.radius.iter().filter(|&&r| r > 0).count();
+        let mut sorted = par_radix_sort(keys, 32);
+        sorted.truncate(visible);
+        return sorted
+            .par_iter()
+            .map(|&k| (k as u32, proj.rect[k as u32 as usize]))
+            .collect();
+    }
+    // f64 depths: their bit patterns, with the index alongside.
     let keys: Vec<(u64, u32)> = proj
         .radius
         .iter()
@@ -83,39 +109,110 @@ fn radix_sort(mut a: Vec<(u64, u32)>) -> Vec<(u64, u32)> {
     a
 }
 
+/// Stable LSD radix sort of `a` by bits `lo..64`, in parallel: each thread takes one
+/// consecutive part of the input, counts its digits, and scatters its part to where the
+/// parts before it end (so ties keep their input order, as in the serial sort).
+fn par_radix_sort(mut a: Vec<u64>, lo: u32) -> Vec<u64> {
+    const B: usize = 1 << DIGIT;
+    let n = a.len();
+    let part = n.div_ceil(rayon::current_num_threads().max(1)).max(1);
+    let mut b = vec![0u64; n];
+    let mut shift = lo;
+    while shift < 64 {
+        let sh = shift;
+        let digit = move |k: u64| ((k >> sh) as usize) & (B - 1);
+        let hists: Vec<Vec<u32>> = a
+            .par_chunks(part)
+            .map(|c| {
+                let mut h = vec![0u32; B];
+                for &k in c {
+                    h[digit(k)] += 1;
+                }
+                h
+            })
+            .collect();
+        shift += DIGIT;
+        if (0..B).any(|d| hists.iter().map(|h| h[d] as usize).sum::<usize>() == n) {
+            continue;
+        }
+        // The output in order is: digit 0 of part 0, of part 1, ..., digit 1 of part 0, ...
+        // Split it so, and hand each part its slice per digit.
+        let mut slots: Vec<Vec<&mut [u64]>> = (0..hists.len()).map(|_| Vec::new()).collect();
+        let mut rest: &mut [u64] = &mut b;
+        for d in 0..B {
+            for (p, h) in hists.iter().enumerate() {
+                let (head, tail) = rest.split_at_mut(h[d] as usize);
+                slots[p].push(head);
+                rest = tail;
+            }
+        }
+        a.par_chunks(part)
+            .zip(slots.into_par_iter())
+            .for_each(|(c, mut dst)| {
+                let mut at = vec![0usize; B];
+                for &k in c {
+                    let d = digit(k);
+                    dst[d][at[d]] = k;
+                    at[d] += 1;
+                }
+            });
+        std::mem::swap(&mut a, &mut b);
+    }
+    a
+}
+
 pub fn bin<T: Real>(proj: &Projected<T>, grid_x: usize, grid_y: usize) -> Bins {
     let order = depth_order(proj);
-    // Hand each band the Gaussians whose rectangle covers it, keeping depth order.
-    let mut members: Vec<Vec<(u32, [u16; 4])>> = vec![Vec::new(); grid_y];
-    for &(g, r) in &order {
-        for band in &mut members[r[2] as usize..r[3] as usize] {
-            band.push((g, r));
-        }
-    }
-    let bands: Vec<Band> = members
+    let tiles = grid_x * grid_y;
+    // Each thread lists one consecutive part of the order in its own tile-major lists, so a
+    // tile's list is the concatenation of the parts' lists for it, in part order.
+    let part = order
+        .len()
+        .div_ceil(rayon::current_num_threads().max(1))
+        .max(1);
+    let lists: Vec<(Vec<u32>, Vec<u32>)> = order
+        .par_chunks(part)
+        .map(|chunk| {
+            let mut offsets = vec![0u32; tiles + 1];
+            for &(_, r) in chunk {
+                for ty in r[2] as usize..r[3] as usize {
+                    for c in &mut offsets
+                        [ty * grid_x + r[0] as usize + 1..ty * grid_x + r[1] as usize + 1]
+                    {
+                        *c += 1;
+                    }
+                }
+            }
+            for t in 0..tiles {
+                offsets[t + 1] += offsets[t];
+            }
+            let mut cursor = offsets.clone();
+            let mut ids = vec![0u32; offsets[tiles] as usize];
+            for &(g, r) in chunk {
+                for ty in r[2] as usize..r[3] as usize {
+                    for c in &mut cursor[ty * grid_x + r[0] as usize..ty * grid_x + r[1] as usize] {
+                        ids[*c as usize] = g;
+                        *c += 1;
+                    }
+                }
+            }
+            (offsets, ids)
+        })
+        .collect();
+    let bands: Vec<Band> = (0..grid_y)
         .into_par_iter()
-        .map(|members| {
-            let mut counts = vec![0u32; grid_x + 1];
-            for (_, r) in &members {
-                for c in &mut counts[r[0] as usize + 1..r[1] as usize + 1] {
-                    *c += 1;
-                }
-            }
+        .map(|ty| {
+            let mut offsets = Vec::with_capacity(grid_x + 1);
+            let mut ids = Vec::new();
+            offsets.push(0);
             for tx in 0..grid_x {
-                counts[tx + 1] += counts[tx];
-            }
-            let mut cursor = counts.clone();
-            let mut ids = vec![0u32; counts[grid_x] as usize];
-            for &(g, r) in &members {
-                for c in &mut cursor[r[0] as usize..r[1] as usize] {
-                    ids[*c as usize] = g;
-                    *c += 1;
+                let t = ty * grid_x + tx;
+                for (o, part_ids) in &lists {
+                    ids.extend_from_slice(&part_ids[o[t] as usize..o[t + 1] as usize]);
                 }
+                offsets.push(ids.len() as u32);
             }
-            Band {
-                offsets: counts,
-                ids,
-            }
+            Band { offsets, ids }
         })
         .collect();
     let pairs = bands.iter().map(|b| b.ids.len()).sum();
@@ -124,8 +221,93 @@ pub fn bin<T: Real>(proj: &Projected<T>, grid_x: usize, grid_y: usize) -> Bins {
 
 #[cfg(test)]
 mod tests {
-    use super::radix_sort;
+    use super::{bin, par_radix_sort, radix_sort};
+    use crate::project::{Projected, Splat2D};
     use crate::rng::Rng;
+
+    /// The parallel sort against the standard library's stable sort by the same bits, with
+    /// one to three parts and many ties.
+    #[test]
+    fn parallel_radix_sort_is_a_stable_sort() {
+        let mut rng = Rng::new(5);
+        for threads in 1..=3 {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            for n in [0usize, 1, 7, 5000] {
+                let keys: Vec<u64> = (0..n as u64)
+                    .map(|i| {
+                        let k = match i % 3 {
+                            0 => rng.below(40) as u64,
+                            1 => rng.below(1 << 20) as u64,
+                            _ => (rng.range(0.2, 50.0) as f32).to_bits() as u64,
+                        };
+                        k << 32 | i
+                    })
+                    .collect();
+                let mut want = keys.clone();
+                want.sort_by_key(|k| k >> 32);
+                let got = pool.install(|| par_radix_sort(keys, 32));
+                assert_eq!(got, want, "{threads} threads, {n} keys");
+            }
+        }
+    }
+
+    /// Tile lists against their definition: every visible Gaussian whose rectangle covers the
+    /// tile, by depth, ties by index; with tied depths, culled Gaussians and rectangles at the
+    /// grid's edges, for one to three threads.
+    #[test]
+    fn bins_are_the_depth_sorted_covering_gaussians() {
+        let (gx, gy) = (7usize, 5usize);
+        let mut rng = Rng::new(9);
+        let n = 3000;
+        let mut proj = Projected::<f32>::default();
+        for _ in 0..n {
+            let (x0, y0) = (rng.below(gx), rng.below(gy));
+            let (x1, y1) = (x0 + 1 + rng.below(gx - x0), y0 + 1 + rng.below(gy - y0));
+            let visible = rng.below(5) != 0;
+            proj.g.push(Splat2D::default());
+            proj.depth
+                .push([1.0, 2.5, rng.range(0.3, 9.0) as f32][rng.below(3)]);
+            proj.radius.push(visible as u32 * 3);
+            proj.rect.push(if visible {
+                [x0 as u16, x1 as u16, y0 as u16, y1 as u16]
+            } else {
+                [0; 4]
+            });
+        }
+        for threads in 1..=3 {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let bins = pool.install(|| bin(&proj, gx, gy));
+            let mut pairs = 0;
+            for ty in 0..gy {
+                for tx in 0..gx {
+                    let mut want: Vec<u32> = (0..n as u32)
+                        .filter(|&i| {
+                            let r = proj.rect[i as usize].map(|v| v as usize);
+                            proj.radius[i as usize] > 0
+                                && (r[0]..r[1]).contains(&tx)
+                                && (r[2]..r[3]).contains(&ty)
+                        })
+                        .collect();
+                    want.sort_by(|&a, &b| {
+                        proj.depth[a as usize].total_cmp(&proj.depth[b as usize])
+                    });
+                    pairs += want.len();
+                    assert_eq!(
+                        bins.bands[ty].tile(tx),
+                        &want[..],
+                        "{threads} threads, tile {tx},{ty}"
+                    );
+                }
+            }
+            assert_eq!(bins.pairs, pairs);
+        }
+    }
 
     #[test]
     fn radix_sort_is_a_stable_sort() {
