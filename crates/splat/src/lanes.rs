@@ -28,7 +28,7 @@ pub fn first(n: usize) -> Mask {
     }
 }
 
-pub trait Lanes<T: Real>: Copy {
+pub trait Lanes<T: Real>: Copy + 'static {
     /// Per-lane tile-list positions.
     type Idx: Copy;
     fn splat(v: T) -> Self;
