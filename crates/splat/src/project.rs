@@ -78,10 +78,12 @@ pub struct Splat2D<T> {
     /// Pixel-space centre.
     pub mx: T,
     pub my: T,
-    /// Conic (inverse 2D covariance) entries A, B, C.
-    pub ca: T,
-    pub cb: T,
-    pub cc: T,
+    /// The conic (inverse 2D covariance) A, B, C as the power uses it: -A/2, -B, -C/2
+    /// (`power = dx (qa dx + qb dy) + qc dy^2` with d = mean - pixel; [`Splat2D::conic`]
+    /// undoes the exact scaling).
+    pub qa: T,
+    pub qb: T,
+    pub qc: T,
     pub opacity: T,
     /// Half-height of the rows the Gaussian can reach: `sqrt(cut * cov_yy)`, where `cut`
     /// bounds `A dx^2 + 2 B dx dy + C dy^2` inside which alpha can reach 1/255 (slightly
@@ -90,6 +92,15 @@ pub struct Splat2D<T> {
     pub ey: T,
     /// Half-width of the columns it can reach, `sqrt(cut * cov_xx)` (negative likewise).
     pub ex: T,
+}
+
+impl<T: Real> Splat2D<T> {
+    /// The conic entries A, B, C.
+    #[inline(always)]
+    pub fn conic(&self) -> (T, T, T) {
+        let m2 = T::lit(-2.0);
+        (m2 * self.qa, -self.qb, m2 * self.qc)
+    }
 }
 
 /// Projected Gaussians. A culled Gaussian has `radius == 0` and an empty rect.
@@ -728,12 +739,14 @@ fn project_lanes<T: Real, L: Lanes<T>>(
     let ey = L::select(faint, never, cut.mul(c).max(zero).sqrt());
     let ex = L::select(faint, never, cut.mul(a).max(zero).sqrt());
     let keep = near & !singular;
-    let (mx, my, ca, cb, cc) = (
+    let neg_half = s(T::lit(-0.5));
+    let (qa, qb, qc) = (neg_half.mul(ca), cb.neg(), neg_half.mul(cc));
+    let (mx, my, qa, qb, qc) = (
         mx.to_array(),
         my.to_array(),
-        ca.to_array(),
-        cb.to_array(),
-        cc.to_array(),
+        qa.to_array(),
+        qb.to_array(),
+        qc.to_array(),
     );
     let (opacity, dep) = (opacity.to_array(), tz.to_array());
     let (ey, ex, radius_f) = (ey.to_array(), ex.to_array(), radius_f.to_array());
@@ -751,9 +764,9 @@ fn project_lanes<T: Real, L: Lanes<T>>(
                 let g = Splat2D {
                     mx: mx[i],
                     my: my[i],
-                    ca: ca[i],
-                    cb: cb[i],
-                    cc: cc[i],
+                    qa: qa[i],
+                    qb: qb[i],
+                    qc: qc[i],
                     opacity: opacity[i],
                     ey: ey[i],
                     ex: ex[i],
@@ -825,9 +838,9 @@ fn project_one<T: Real>(cam: &CamK<T>, g: &[T]) -> (Splat2D<T>, T, u32, [u16; 4]
         Splat2D {
             mx,
             my,
-            ca,
-            cb,
-            cc,
+            qa: T::lit(-0.5) * ca,
+            qb: -cb,
+            qc: T::lit(-0.5) * cc,
             opacity,
             ey: T::lit(reach(c)),
             ex: T::lit(reach(a)),
@@ -1064,9 +1077,9 @@ mod tests {
             let exact = [
                 ("mx", got.mx, want.mx),
                 ("my", got.my, want.my),
-                ("ca", got.ca, want.ca),
-                ("cb", got.cb, want.cb),
-                ("cc", got.cc, want.cc),
+                ("qa", got.qa, want.qa),
+                ("qb", got.qb, want.qb),
+                ("qc", got.qc, want.qc),
                 ("opacity", got.opacity, want.opacity),
                 ("depth", depth_i, want_depth),
             ];

@@ -322,13 +322,12 @@ fn eval_n<T: Real, L: Lanes<T>, const N: usize>(
     let mut power = [zero; N];
     for i in 0..N {
         // power = -0.5 (A dx^2 + C dy^2) - B dx dy = dx (-A/2 dx - B dy) + (-C/2 dy) dy, with
-        // d = mean - pixel (halving and negating are exact).
+        // d = mean - pixel (the halved, negated conic is stored).
         let s = ss[i];
-        let half = T::lit(-0.5);
         let dy = L::splat(s.my).sub(py);
         let dx = L::splat(s.mx).sub(px);
-        let inner = L::splat(half * s.ca).mul_add(dx, L::splat(-s.cb).mul(dy));
-        let cdy = L::splat(half * s.cc).mul(dy).mul(dy);
+        let inner = L::splat(s.qa).mul_add(dx, L::splat(s.qb).mul(dy));
+        let cdy = L::splat(s.qc).mul(dy).mul(dy);
         power[i] = dx.mul_add(inner, cdy);
     }
     let g = L::exp_n(power);
@@ -1043,6 +1042,8 @@ fn backward_band<T: Real, L: Lanes<T>, D: Blocks<L>>(
                 continue;
             };
             let fp = &feats[g * cpad..g * cpad + c];
+            let (ca, cb, cc) = s.conic();
+            let (ca, cb, cc) = (L::splat(ca), L::splat(cb), L::splat(cc));
             let dfeat = dfeat_store.blocks();
             for d in dfeat.iter_mut() {
                 *d = L::zero();
@@ -1093,7 +1094,6 @@ fn backward_band<T: Real, L: Lanes<T>, D: Blocks<L>>(
                     // power = -0.5 (A dx^2 + C dy^2) - B dx dy, with d = mean - pixel.
                     let dx = L::splat(s.mx).sub(px);
                     let dy = L::splat(s.my).sub(py);
-                    let (ca, cb, cc) = (L::splat(s.ca), L::splat(s.cb), L::splat(s.cc));
                     geo[0] = geo[0].sub(dpow.mul(ca.mul(dx).add(cb.mul(dy))));
                     geo[1] = geo[1].sub(dpow.mul(cc.mul(dy).add(cb.mul(dx))));
                     geo[2] = geo[2].sub(half.mul(dpow).mul(dx).mul(dx));
@@ -1247,7 +1247,8 @@ mod tests {
                             for lx in 0..tw {
                                 let dx = g.mx as f64 - (x0 + lx) as f64;
                                 let dy = g.my as f64 - (y0 + ly) as f64;
-                                let (a, b, c) = (g.ca as f64, g.cb as f64, g.cc as f64);
+                                let (a, b, c) = g.conic();
+                                let (a, b, c) = (a as f64, b as f64, c as f64);
                                 let power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy;
                                 let alpha = (g.opacity as f64 * power.exp()).min(MAX_ALPHA);
                                 if power > 0.0 || alpha < MIN_ALPHA {
