@@ -356,6 +356,7 @@ pub fn project<T: Real>(cam: &CamK<T>, geom: &[T]) -> Projected<T> {
     let mut radius: Vec<u32> = Vec::with_capacity(n);
     let mut rect: Vec<[u16; 4]> = Vec::with_capacity(n);
     let avx2 = has_avx2();
+    #[cfg(target_arch = "x86_64")]
     let cam32 = as_f32_cam(cam).filter(|_| has_avx512());
     g.spare_capacity_mut()[..n]
         .par_chunks_mut(PROJECT_BLOCK)
@@ -512,6 +513,7 @@ fn has_avx2() -> bool {
 }
 
 /// The camera as `CamK<f32>` when `T` is `f32`.
+#[cfg(target_arch = "x86_64")]
 fn as_f32_cam<T: Real>(cam: &CamK<T>) -> Option<&CamK<f32>> {
     (std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>())
         // SAFETY: T and f32 are the same type, so the two are the same struct.
@@ -519,15 +521,9 @@ fn as_f32_cam<T: Real>(cam: &CamK<T>) -> Option<&CamK<f32>> {
 }
 
 /// Whether the AVX-512 projection runs (not under `GAGAVATAR_NO_AVX512`, like the raster).
+#[cfg(target_arch = "x86_64")]
 fn has_avx512() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::arch::is_x86_feature_detected!("avx512f") && !crate::raster::simd_disabled()
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
+    std::arch::is_x86_feature_detected!("avx512f") && !crate::raster::simd_disabled()
 }
 
 /// Sixteen Gaussians at a time in AVX-512 lanes ([`project_lanes`]), the rest one by one.
@@ -606,6 +602,7 @@ fn project_block<T: Real>(
 /// `ey`, whose log is [`Lanes::ln_bound`] in f32: it is inflated far beyond
 /// that difference, so the same pixels are visited and the images do not change.
 #[inline(always)]
+#[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
 fn project_lanes<T: Real, L: Lanes<T>>(
     cam: &CamK<T>,
     geom: GeomIn<T>,

@@ -256,6 +256,7 @@ fn path<T: Real>() -> Path {
 }
 
 /// The projected Gaussians as f32 ones when `T` is `f32`.
+#[cfg(target_arch = "x86_64")]
 fn as_f32_splats<T: Real>(g: &[Splat2D<T>]) -> Option<&[Splat2D<f32>]> {
     (std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>())
         // SAFETY: T and f32 are the same type.
