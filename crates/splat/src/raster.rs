@@ -255,20 +255,6 @@ fn path<T: Real>() -> Path {
     Path::Portable
 }
 
-/// The projected Gaussians as f32 ones when `T` is `f32`.
-#[cfg(target_arch = "x86_64")]
-fn as_f32_splats<T: Real>(g: &[Splat2D<T>]) -> Option<&[Splat2D<f32>]> {
-    (std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>())
-        // SAFETY: T and f32 are the same type.
-        .then(|| unsafe { std::slice::from_raw_parts(g.as_ptr().cast::<Splat2D<f32>>(), g.len()) })
-}
-
-/// Whether the kernel is the AVX-512 compilation.
-#[cfg(target_arch = "x86_64")]
-fn is_z16<T: Real, L: Lanes<T>>() -> bool {
-    std::any::TypeId::of::<L>() == std::any::TypeId::of::<Z16>()
-}
-
 /// The frame as `Frame<f32>` when `T` is `f32`.
 fn as_f32<'a, 'b, T: Real>(f: &'b Frame<'a, T>) -> Option<&'b Frame<'a, f32>> {
     (std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>())
@@ -359,7 +345,7 @@ fn block_mask(range: Option<[(usize, usize); 2]>) -> u32 {
 /// the kernel's target features, and floor/ceil would become library calls.)
 #[inline(always)]
 fn block_masks<T: Real>(
-    f: &Frame<T>,
+    g: &[Splat2D<T>],
     list: &[u32],
     (x0, y0, tw, th): (usize, usize, usize, usize),
     masks: &mut Vec<u32>,
@@ -367,15 +353,40 @@ fn block_masks<T: Real>(
     masks.clear();
     for (k, &gi) in list.iter().enumerate() {
         if let Some(&ahead) = list.get(k + PREFETCH_AHEAD) {
-            prefetch(&f.proj.g, ahead as usize, 1);
+            prefetch(g, ahead as usize, 1);
         }
-        masks.push(block_mask(block_range(
-            &f.proj.g[gi as usize],
-            x0,
-            y0,
-            tw,
-            th,
-        )));
+        masks.push(block_mask(block_range(&g[gi as usize], x0, y0, tw, th)));
+    }
+}
+
+/// How a kernel's lanes fill a tile's block masks: [`block_masks`], or for the AVX-512 lanes
+/// [`block_masks_avx512`] (the same masks).
+trait TileMasks<T: Real>: Lanes<T> {
+    #[inline(always)]
+    fn tile_masks(
+        g: &[Splat2D<T>],
+        list: &[u32],
+        tile: (usize, usize, usize, usize),
+        masks: &mut Vec<u32>,
+    ) {
+        block_masks(g, list, tile, masks)
+    }
+}
+
+impl<T: Real> TileMasks<T> for P16<T> {}
+
+#[cfg(target_arch = "x86_64")]
+impl TileMasks<f32> for Z16 {
+    #[inline(always)]
+    fn tile_masks(
+        g: &[Splat2D<f32>],
+        list: &[u32],
+        tile: (usize, usize, usize, usize),
+        masks: &mut Vec<u32>,
+    ) {
+        // SAFETY: Z16 is only used inside kernels that run after AVX-512F was detected (see
+        // the lanes module).
+        unsafe { block_masks_avx512(g, list, tile, masks) }
     }
 }
 
@@ -625,7 +636,7 @@ unsafe fn forward_band_avx2<T: Real>(
 /// Each pixel receives exactly the release's operations in the release's order: a zero weight
 /// adds an exact zero (features are finite, and a sum that starts at +0 never becomes -0).
 #[inline(always)]
-fn forward_band<T: Real, L: Lanes<T>>(
+fn forward_band<T: Real, L: TileMasks<T>>(
     f: &Frame<T>,
     pad: &Padded<T>,
     ty: usize,
@@ -649,15 +660,7 @@ fn forward_band<T: Real, L: Lanes<T>>(
         let x0 = tx * TILE;
         let tw = TILE.min(w - x0);
         let list = band.tile(tx);
-        #[cfg(target_arch = "x86_64")]
-        if let Some(g32) = as_f32_splats(&f.proj.g).filter(|_| is_z16::<T, L>()) {
-            // SAFETY: L is Z16, so this runs inside the AVX-512 kernel (path).
-            unsafe { block_masks_avx512(g32, list, (x0, y0, tw, th), &mut sc.masks) };
-        } else {
-            block_masks(f, list, (x0, y0, tw, th), &mut sc.masks);
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        block_masks(f, list, (x0, y0, tw, th), &mut sc.masks);
+        L::tile_masks(&f.proj.g, list, (x0, y0, tw, th), &mut sc.masks);
         if sc.blk.len() < list.len() + WIDTH {
             sc.blk.resize(list.len() + WIDTH, 0);
         }
@@ -1163,20 +1166,6 @@ mod tests {
                 }
             })
             .collect();
-        let proj = Projected {
-            g: g.clone(),
-            ..Default::default()
-        };
-        let bins = crate::binning::Bins::default();
-        let f = Frame {
-            proj: &proj,
-            bins: &bins,
-            features: &[],
-            channels: 1,
-            background: &[0.0],
-            width: 40,
-            height: 40,
-        };
         for (x0, y0, tw, th) in [
             (16, 16, 16, 16),
             (0, 32, 16, 8),
@@ -1186,7 +1175,7 @@ mod tests {
             for len in [0usize, 1, 15, 16, 17, 3000] {
                 let list: Vec<u32> = (0..len as u32).rev().collect();
                 let (mut want, mut got) = (Vec::new(), Vec::new());
-                block_masks(&f, &list, (x0, y0, tw, th), &mut want);
+                block_masks(&g, &list, (x0, y0, tw, th), &mut want);
                 // SAFETY: the CPU has AVX-512F.
                 unsafe { block_masks_avx512(&g, &list, (x0, y0, tw, th), &mut got) };
                 for (k, (w, gv)) in want.iter().zip(&got).enumerate() {
