@@ -52,7 +52,7 @@ pub fn depth_order<T: Real>(proj: &Projected<T>) -> Vec<(u32, [u16; 4])> {
             })
             .collect();
         let visible = proj.radius.iter().filter(|&&r| r > 0).count();
-        let mut sorted = par_radix_sort(keys, 32);
+        let mut sorted = radix_sort_by(keys, 32..64, |k| k);
         sorted.truncate(visible);
         return sorted
             .par_iter()
@@ -67,7 +67,7 @@ pub fn depth_order<T: Real>(proj: &Projected<T>) -> Vec<(u32, [u16; 4])> {
         .filter(|(_, &r)| r > 0)
         .map(|(i, _)| (proj.depth[i].as_f64().to_bits(), i as u32))
         .collect();
-    radix_sort(keys)
+    radix_sort_by(keys, 0..64, |e| e.0)
         .into_iter()
         .map(|(_, i)| (i, proj.rect[i as usize]))
         .collect()
@@ -76,57 +76,30 @@ pub fn depth_order<T: Real>(proj: &Projected<T>) -> Vec<(u32, [u16; 4])> {
 /// Bits per radix digit.
 const DIGIT: u32 = 11;
 
-/// Stable LSD radix sort by key. Digits where every key agrees (the low bits of f32 depths
-/// widened to f64, the exponent of depths in one octave) cost one histogram and no pass.
-fn radix_sort(mut a: Vec<(u64, u32)>) -> Vec<(u64, u32)> {
-    const B: usize = 1 << DIGIT;
-    let digits = 64u32.div_ceil(DIGIT) as usize;
-    let mut hist = vec![[0u32; B]; digits];
-    for &(k, _) in &a {
-        for (d, h) in hist.iter_mut().enumerate() {
-            h[((k >> (d as u32 * DIGIT)) as usize) & (B - 1)] += 1;
-        }
-    }
-    let mut b = vec![(0u64, 0u32); a.len()];
-    for (d, h) in hist.iter().enumerate() {
-        if h.iter().any(|&c| c as usize == a.len()) {
-            continue;
-        }
-        let mut at = [0u32; B];
-        let mut sum = 0;
-        for (o, &c) in at.iter_mut().zip(h) {
-            *o = sum;
-            sum += c;
-        }
-        let shift = d as u32 * DIGIT;
-        for &e in &a {
-            let slot = &mut at[((e.0 >> shift) as usize) & (B - 1)];
-            b[*slot as usize] = e;
-            *slot += 1;
-        }
-        std::mem::swap(&mut a, &mut b);
-    }
-    a
-}
-
-/// Stable LSD radix sort of `a` by bits `lo..64`, in parallel: each thread takes one
+/// Stable LSD radix sort of `a` by bits `bits` of `key`, in parallel: each thread takes one
 /// consecutive part of the input, counts its digits, and scatters its part to where the
-/// parts before it end (so ties keep their input order, as in the serial sort).
-fn par_radix_sort(mut a: Vec<u64>, lo: u32) -> Vec<u64> {
+/// parts before it end (so ties keep their input order). Digits where every key agrees (the
+/// low bits of f32 depths widened to f64, the exponent of depths in one octave) cost one
+/// count and no pass.
+fn radix_sort_by<E: Copy + Default + Send + Sync>(
+    mut a: Vec<E>,
+    bits: std::ops::Range<u32>,
+    key: impl Fn(E) -> u64 + Sync,
+) -> Vec<E> {
     const B: usize = 1 << DIGIT;
     let n = a.len();
     let part = n.div_ceil(rayon::current_num_threads().max(1)).max(1);
-    let mut b = vec![0u64; n];
-    let mut shift = lo;
-    while shift < 64 {
+    let mut b = vec![E::default(); n];
+    let mut shift = bits.start;
+    while shift < bits.end {
         let sh = shift;
-        let digit = move |k: u64| ((k >> sh) as usize) & (B - 1);
+        let digit = |e: E| ((key(e) >> sh) as usize) & (B - 1);
         let hists: Vec<Vec<u32>> = a
             .par_chunks(part)
             .map(|c| {
                 let mut h = vec![0u32; B];
-                for &k in c {
-                    h[digit(k)] += 1;
+                for &e in c {
+                    h[digit(e)] += 1;
                 }
                 h
             })
@@ -137,8 +110,8 @@ fn par_radix_sort(mut a: Vec<u64>, lo: u32) -> Vec<u64> {
         }
         // The output in order is: digit 0 of part 0, of part 1, ..., digit 1 of part 0, ...
         // Split it so, and hand each part its slice per digit.
-        let mut slots: Vec<Vec<&mut [u64]>> = (0..hists.len()).map(|_| Vec::new()).collect();
-        let mut rest: &mut [u64] = &mut b;
+        let mut slots: Vec<Vec<&mut [E]>> = (0..hists.len()).map(|_| Vec::new()).collect();
+        let mut rest: &mut [E] = &mut b;
         for d in 0..B {
             for (p, h) in hists.iter().enumerate() {
                 let (head, tail) = rest.split_at_mut(h[d] as usize);
@@ -150,9 +123,9 @@ fn par_radix_sort(mut a: Vec<u64>, lo: u32) -> Vec<u64> {
             .zip(slots.into_par_iter())
             .for_each(|(c, mut dst)| {
                 let mut at = vec![0usize; B];
-                for &k in c {
-                    let d = digit(k);
-                    dst[d][at[d]] = k;
+                for &e in c {
+                    let d = digit(e);
+                    dst[d][at[d]] = e;
                     at[d] += 1;
                 }
             });
@@ -221,7 +194,7 @@ pub fn bin<T: Real>(proj: &Projected<T>, grid_x: usize, grid_y: usize) -> Bins {
 
 #[cfg(test)]
 mod tests {
-    use super::{bin, par_radix_sort, radix_sort};
+    use super::{bin, radix_sort_by};
     use crate::project::{Projected, Splat2D};
     use crate::rng::Rng;
 
@@ -248,7 +221,7 @@ mod tests {
                     .collect();
                 let mut want = keys.clone();
                 want.sort_by_key(|k| k >> 32);
-                let got = pool.install(|| par_radix_sort(keys, 32));
+                let got = pool.install(|| radix_sort_by(keys, 32..64, |k| k));
                 assert_eq!(got, want, "{threads} threads, {n} keys");
             }
         }
@@ -323,10 +296,10 @@ mod tests {
                 (k, i)
             })
             .collect();
-        let sorted = radix_sort(keys.clone());
+        let sorted = radix_sort_by(keys.clone(), 0..64, |e| e.0);
         // The standard library's stable sort by key alone is the reference.
         keys.sort_by_key(|e| e.0);
         assert_eq!(sorted, keys);
-        assert!(radix_sort(Vec::new()).is_empty());
+        assert!(radix_sort_by(Vec::<(u64, u32)>::new(), 0..64, |e| e.0).is_empty());
     }
 }
