@@ -8,6 +8,7 @@ use anyhow::{bail, Context, Result};
 use candle_core::{DType, Device, Tensor};
 use clap::Args;
 use gagavatar_flame::{BasisLayout, FlameAsset, FlameModel, LoadOptions, TrackedFrame};
+use gagavatar_formats::image::DecodeOptions;
 use gagavatar_net::checkpoint::{self, check_keys, read_weights, write_safetensors, write_tensors};
 use gagavatar_net::style_unet::Noise;
 use gagavatar_net::torch_writer::write_torch_checkpoint;
@@ -105,9 +106,13 @@ pub fn run_init_weights(a: InitWeightsArgs) -> Result<()> {
 /// Reads an RGB image as `[1, 3, size, size]` in [0, 1], resizing (antialiased bilinear) when
 /// its size differs.
 pub fn read_image(path: &Path, size: usize) -> Result<Tensor> {
-    let img = image::open(path)
-        .with_context(|| format!("reading image {}", path.display()))?
-        .to_rgb8();
+    // Decoded by content with EXIF orientation; anything far above the model size is reduced
+    // during decoding so a huge photo never costs gigabytes.
+    let opts = DecodeOptions {
+        min_side: 1,
+        fit_within: Some((4 * size) as u32),
+    };
+    let img = gagavatar_formats::image::read_image(path, &opts)?.rgb;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let mut planar = vec![0f32; 3 * w * h];
     for (i, px) in img.pixels().enumerate() {

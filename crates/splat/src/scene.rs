@@ -10,6 +10,9 @@ use crate::error::{Result, SplatError};
 use candle_core::{DType, Device, Tensor};
 use std::path::Path;
 
+/// The atomic-output mechanism lives in `gagavatar-formats`; re-exported for existing callers.
+pub use gagavatar_formats::atomic::{replace_dir, temp_sibling, write_via_temp};
+
 /// Zeroth-order spherical-harmonic constant used by 3DGS to store colours.
 const SH_C0: f64 = 0.282_094_791_773_878_14;
 const PLY_MARKER: &str = "comment gagavatar";
@@ -434,19 +437,6 @@ mod unit_quaternion_tests {
     }
 }
 
-/// A hidden temporary name beside `path` (same directory, so a rename replaces `path` atomically).
-pub fn temp_sibling(path: &Path) -> std::path::PathBuf {
-    let dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let name = path
-        .file_name()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "out".into());
-    dir.join(format!(".{name}.tmp{}", std::process::id()))
-}
-
 /// Writes `bytes` to a temp file beside `path`, then renames it over `path`, so a crash never
 /// leaves a half-written file.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
@@ -455,51 +445,6 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
         source,
     };
     write_via_temp(path, |tmp| std::fs::write(tmp, bytes).map_err(io), io)
-}
-
-/// The project's one atomic-output mechanism: `write(tmp)` fills a temp sibling of `path`
-/// (see [`temp_sibling`]), which is then synced and renamed over `path`. On any failure the temp
-/// file is removed and `path` is left as it was.
-pub fn write_via_temp<E>(
-    path: &Path,
-    write: impl FnOnce(&Path) -> std::result::Result<(), E>,
-    io_err: impl Fn(std::io::Error) -> E,
-) -> std::result::Result<(), E> {
-    let tmp = temp_sibling(path);
-    let result = write(&tmp)
-        .and_then(|()| {
-            std::fs::File::open(&tmp)
-                .and_then(|f| f.sync_all())
-                .map_err(&io_err)
-        })
-        .and_then(|()| std::fs::rename(&tmp, path).map_err(&io_err));
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
-}
-
-/// Puts the finished directory `tmp` at `dir`. An existing `dir` is first moved to a second temp
-/// name and deleted only after the new one is in place (a directory cannot be renamed over a
-/// non-empty one); if the second rename fails the old one is moved back.
-pub fn replace_dir(tmp: &Path, dir: &Path) -> std::io::Result<()> {
-    if !dir.exists() {
-        return std::fs::rename(tmp, dir);
-    }
-    let mut old = temp_sibling(dir).into_os_string();
-    old.push(".old");
-    let old = std::path::PathBuf::from(old);
-    if old.exists() {
-        std::fs::remove_dir_all(&old)?;
-    }
-    std::fs::rename(dir, &old)?;
-    if let Err(e) = std::fs::rename(tmp, dir) {
-        let _ = std::fs::rename(&old, dir);
-        return Err(e);
-    }
-    // The new data is in place; failing to delete the old copy loses nothing.
-    let _ = std::fs::remove_dir_all(&old);
-    Ok(())
 }
 
 mod ply {

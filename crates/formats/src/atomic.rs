@@ -1,0 +1,128 @@
+//! Atomic output, the project's one mechanism: a file (or a directory) is written under a hidden
+//! temporary sibling name and renamed into place when complete, so a crash or a kill never leaves
+//! a half-written output at the real path (at worst a hidden `.NAME.tmpPID.N` beside it).
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use crate::FormatError;
+
+/// A hidden temporary name beside `path` (same directory, so a rename replaces `path`
+/// atomically). Unique per process and per call, so concurrent writers never share one.
+pub fn temp_sibling(path: &Path) -> PathBuf {
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let name = path
+        .file_name()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "out".into());
+    let n = COUNTER.fetch_add(1, Ordering::Relaxed);
+    dir.join(format!(".{name}.tmp{}.{n}", std::process::id()))
+}
+
+/// `write(tmp)` fills a temp sibling of `path` (see [`temp_sibling`]), which is then synced and
+/// renamed over `path`. On any failure the temp file is removed and `path` is left as it was.
+pub fn write_via_temp<E>(
+    path: &Path,
+    write: impl FnOnce(&Path) -> Result<(), E>,
+    io_err: impl Fn(std::io::Error) -> E,
+) -> Result<(), E> {
+    let tmp = temp_sibling(path);
+    let result = write(&tmp)
+        .and_then(|()| {
+            std::fs::File::open(&tmp)
+                .and_then(|f| f.sync_all())
+                .map_err(&io_err)
+        })
+        .and_then(|()| std::fs::rename(&tmp, path).map_err(&io_err));
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+/// Writes `bytes` to a temp file beside `path`, syncs it, then renames it over `path`.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FormatError> {
+    write_via_temp(
+        path,
+        |tmp| std::fs::write(tmp, bytes).map_err(FormatError::io(path, "cannot write")),
+        |e| FormatError::io(path, "cannot write")(e),
+    )
+}
+
+/// Puts the finished directory `tmp` at `dir`. An existing `dir` is first moved to a second temp
+/// name and deleted only after the new one is in place (a directory cannot be renamed over a
+/// non-empty one); if the second rename fails the old one is moved back.
+pub fn replace_dir(tmp: &Path, dir: &Path) -> std::io::Result<()> {
+    if !dir.exists() {
+        return std::fs::rename(tmp, dir);
+    }
+    let mut old = temp_sibling(dir).into_os_string();
+    old.push(".old");
+    let old = PathBuf::from(old);
+    if old.exists() {
+        std::fs::remove_dir_all(&old)?;
+    }
+    std::fs::rename(dir, &old)?;
+    if let Err(e) = std::fs::rename(tmp, dir) {
+        let _ = std::fs::rename(&old, dir);
+        return Err(e);
+    }
+    // The new data is in place; failing to delete the old copy loses nothing.
+    let _ = std::fs::remove_dir_all(&old);
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn write_atomic_replaces_and_leaves_no_temp() {
+        let dir = std::env::temp_dir().join(format!("gagavatar-atomic-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("out.txt");
+        write_atomic(&path, b"one").unwrap();
+        write_atomic(&path, b"two").unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"two");
+        let names: Vec<_> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(names.len(), 1, "left behind: {names:?}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn failed_write_keeps_the_old_file() {
+        let dir = std::env::temp_dir().join(format!("gagavatar-atomic2-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("keep.txt");
+        std::fs::write(&path, b"old").unwrap();
+        let r: Result<(), std::io::Error> = write_via_temp(
+            &path,
+            |tmp| {
+                std::fs::write(tmp, b"partial")?;
+                Err(std::io::Error::other("simulated failure"))
+            },
+            |e| e,
+        );
+        assert!(r.is_err());
+        assert_eq!(std::fs::read(&path).unwrap(), b"old");
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn temp_names_are_unique_and_hidden() {
+        let a = temp_sibling(Path::new("x/out.mp4"));
+        let b = temp_sibling(Path::new("x/out.mp4"));
+        assert_ne!(a, b);
+        let name = a.file_name().unwrap().to_string_lossy().into_owned();
+        assert!(name.starts_with(".out.mp4.tmp"), "{name}");
+        assert_eq!(a.parent(), Some(Path::new("x")));
+    }
+}

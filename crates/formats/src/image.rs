@@ -1,0 +1,491 @@
+//! Photos as users have them: the format is read from the bytes (PNG data named `.jpg` is common),
+//! EXIF orientation is applied (phones store portraits sideways plus a flag), transparency is
+//! composited onto black (the model's background), and a photo larger than the caller needs is
+//! downscaled right after decoding, row by row, so a 10000x10000 photo never exists in several
+//! full-size copies at once.
+//!
+//! A header that asks for more than [`MAX_SIDE`] per side or [`MAX_PIXELS`] in all is refused
+//! before anything is allocated.
+
+use std::io::Cursor;
+use std::path::Path;
+
+use image::{DynamicImage, ImageDecoder, ImageFormat, ImageReader, Limits, RgbImage};
+
+use crate::FormatError;
+
+/// Largest width or height accepted (a corrupt or hostile header could otherwise ask for
+/// gigabytes).
+pub const MAX_SIDE: u32 = 16384;
+/// Largest pixel count accepted: 150 MP, above every phone and most camera sensors (RGB at this
+/// size is 450 MB).
+pub const MAX_PIXELS: u64 = 150_000_000;
+/// Allocation bound handed to the decoders: the RGB image at [`MAX_PIXELS`] plus decoder slack.
+const MAX_ALLOC: u64 = 1 << 30;
+
+/// The container formats recognised from the first bytes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ImageKind {
+    Png,
+    Jpeg,
+    WebP,
+    Bmp,
+}
+
+impl ImageKind {
+    fn format(self) -> ImageFormat {
+        match self {
+            ImageKind::Png => ImageFormat::Png,
+            ImageKind::Jpeg => ImageFormat::Jpeg,
+            ImageKind::WebP => ImageFormat::WebP,
+            ImageKind::Bmp => ImageFormat::Bmp,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            ImageKind::Png => "PNG",
+            ImageKind::Jpeg => "JPEG",
+            ImageKind::WebP => "WebP",
+            ImageKind::Bmp => "BMP",
+        }
+    }
+}
+
+/// The image format of `bytes`, from their magic numbers alone.
+pub fn sniff(bytes: &[u8]) -> Option<ImageKind> {
+    if bytes.starts_with(b"\x89PNG\r\n\x1a\n") {
+        Some(ImageKind::Png)
+    } else if bytes.starts_with(&[0xff, 0xd8, 0xff]) {
+        Some(ImageKind::Jpeg)
+    } else if bytes.len() >= 12 && &bytes[0..4] == b"RIFF" && &bytes[8..12] == b"WEBP" {
+        Some(ImageKind::WebP)
+    } else if bytes.starts_with(b"BM") && bytes.len() >= 26 {
+        Some(ImageKind::Bmp)
+    } else {
+        None
+    }
+}
+
+/// How to decode.
+#[derive(Debug, Clone, Copy)]
+pub struct DecodeOptions {
+    /// Smallest width and height accepted (after orientation); smaller images are refused with a
+    /// clear message instead of going on to find nothing.
+    pub min_side: u32,
+    /// When set, an image whose longer side exceeds this is downscaled (area average) to fit.
+    pub fit_within: Option<u32>,
+}
+
+impl Default for DecodeOptions {
+    fn default() -> Self {
+        DecodeOptions {
+            min_side: 1,
+            fit_within: None,
+        }
+    }
+}
+
+/// A decoded photo, upright, RGB.
+#[derive(Debug, Clone)]
+pub struct DecodedImage {
+    pub rgb: RgbImage,
+    /// The upright size of the photo as stored, before any downscaling.
+    pub original_width: u32,
+    pub original_height: u32,
+    /// `rgb`'s pixel size in original pixels (1.0 when not downscaled): multiply coordinates
+    /// found in `rgb` by this to report them in the original photo's pixels.
+    pub scale_to_original: f64,
+    pub kind: ImageKind,
+    /// The EXIF orientation that was applied (`NoTransforms` when none was stored).
+    pub orientation: image::metadata::Orientation,
+}
+
+/// Reads and decodes an image file; errors name the file.
+pub fn read_image(path: &Path, opts: &DecodeOptions) -> Result<DecodedImage, FormatError> {
+    let bytes = std::fs::read(path).map_err(FormatError::io(path, "cannot read"))?;
+    decode_image(&bytes, &path.display().to_string(), opts)
+}
+
+/// Decodes image bytes; `label` names them in errors (a path, or an archive entry).
+pub fn decode_image(
+    bytes: &[u8],
+    label: &str,
+    opts: &DecodeOptions,
+) -> Result<DecodedImage, FormatError> {
+    let err = |reason: String| FormatError::Image {
+        label: label.to_owned(),
+        reason,
+    };
+    if bytes.is_empty() {
+        return Err(err("the file is empty, not an image".into()));
+    }
+    let kind = match sniff(bytes) {
+        Some(k) => k,
+        None => return Err(err(unknown_format_reason(bytes))),
+    };
+    let mut reader = ImageReader::with_format(Cursor::new(bytes), kind.format());
+    let mut limits = Limits::default();
+    limits.max_image_width = Some(MAX_SIDE);
+    limits.max_image_height = Some(MAX_SIDE);
+    limits.max_alloc = Some(MAX_ALLOC);
+    reader.limits(limits);
+    let mut decoder = reader
+        .into_decoder()
+        .map_err(|e| err(decode_reason(kind, e)))?;
+    let (w, h) = decoder.dimensions();
+    check_size(w, h).map_err(err)?;
+    // A missing or unreadable orientation tag means "as stored", like every viewer does.
+    let orientation = decoder
+        .orientation()
+        .unwrap_or(image::metadata::Orientation::NoTransforms);
+    let img = DynamicImage::from_decoder(decoder).map_err(|e| err(decode_reason(kind, e)))?;
+    let rgb = to_rgb_on_black(img);
+    let (ow, oh) = if swaps_sides(orientation) {
+        (h, w)
+    } else {
+        (w, h)
+    };
+    if ow.min(oh) < opts.min_side {
+        return Err(err(format!(
+            "the image is {ow}x{oh} pixels; at least {m}x{m} is needed",
+            m = opts.min_side
+        )));
+    }
+    let (rgb, scale) = match opts.fit_within {
+        Some(limit) if w.max(h) > limit.max(1) => {
+            let s = limit.max(1) as f64 / w.max(h) as f64;
+            let nw = ((w as f64 * s).round() as u32).max(1);
+            let nh = ((h as f64 * s).round() as u32).max(1);
+            let small = area_downscale(&rgb, nw, nh);
+            drop(rgb);
+            (small, w as f64 / nw as f64)
+        }
+        _ => (rgb, 1.0),
+    };
+    let mut dynimg = DynamicImage::ImageRgb8(rgb);
+    dynimg.apply_orientation(orientation);
+    let DynamicImage::ImageRgb8(rgb) = dynimg else {
+        unreachable!("apply_orientation keeps the pixel type")
+    };
+    Ok(DecodedImage {
+        rgb,
+        original_width: ow,
+        original_height: oh,
+        scale_to_original: scale,
+        kind,
+        orientation,
+    })
+}
+
+fn swaps_sides(o: image::metadata::Orientation) -> bool {
+    use image::metadata::Orientation::*;
+    matches!(o, Rotate90 | Rotate270 | Rotate90FlipH | Rotate270FlipH)
+}
+
+fn check_size(w: u32, h: u32) -> Result<(), String> {
+    if w == 0 || h == 0 {
+        return Err(format!("the image header says {w}x{h} pixels (empty)"));
+    }
+    if w > MAX_SIDE || h > MAX_SIDE || w as u64 * h as u64 > MAX_PIXELS {
+        return Err(format!(
+            "the image is {w}x{h} pixels, larger than the {MAX_SIDE} px per side / {} MP this tool \
+             accepts; downscale it first",
+            MAX_PIXELS / 1_000_000
+        ));
+    }
+    Ok(())
+}
+
+fn unknown_format_reason(bytes: &[u8]) -> String {
+    if bytes.len() >= 12 && &bytes[4..8] == b"ftyp" {
+        let brand = String::from_utf8_lossy(&bytes[8..12]).into_owned();
+        if ["heic", "heix", "mif1", "msf1", "heim", "heis", "avif"].contains(&brand.as_str()) {
+            return format!(
+                "a HEIF/AVIF photo (brand '{brand}'), which this tool cannot decode; convert it to \
+                 JPEG or PNG first"
+            );
+        }
+        return format!("an ISO media file (brand '{brand}'), not an image");
+    }
+    let head: Vec<String> = bytes.iter().take(8).map(|b| format!("{b:02x}")).collect();
+    format!(
+        "not an image this tool reads (PNG, JPEG, WebP or BMP); it starts with bytes {}",
+        head.join(" ")
+    )
+}
+
+fn decode_reason(kind: ImageKind, e: image::ImageError) -> String {
+    match e {
+        image::ImageError::Limits(_) => format!(
+            "the {} image is too large to decode (more than {MAX_SIDE} px per side or {} MiB)",
+            kind.name(),
+            MAX_ALLOC >> 20
+        ),
+        image::ImageError::IoError(io) if io.kind() == std::io::ErrorKind::UnexpectedEof => {
+            format!("the {} data is truncated", kind.name())
+        }
+        other => format!("corrupt {} data ({other})", kind.name()),
+    }
+}
+
+/// Any pixel type to 8-bit RGB; transparent pixels are composited onto black, the background the
+/// model was trained on.
+fn to_rgb_on_black(img: DynamicImage) -> RgbImage {
+    match img {
+        DynamicImage::ImageRgb8(rgb) => rgb,
+        img if img.color().has_alpha() => {
+            let rgba = img.into_rgba8();
+            let (w, h) = rgba.dimensions();
+            let mut out = RgbImage::new(w, h);
+            for (o, p) in out.pixels_mut().zip(rgba.pixels()) {
+                let a = p.0[3] as u32;
+                for c in 0..3 {
+                    o.0[c] = ((p.0[c] as u32 * a + 127) / 255) as u8;
+                }
+            }
+            out
+        }
+        img => img.into_rgb8(),
+    }
+}
+
+/// Exact area-average downscale (each output pixel is the mean of the source area it covers,
+/// fractional pixels weighted by their coverage), streamed one source row at a time so only
+/// one output-sized accumulator exists beside the source.
+pub fn area_downscale(src: &RgbImage, nw: u32, nh: u32) -> RgbImage {
+    let (w, h) = src.dimensions();
+    let (w, h, nw, nh) = (
+        w as usize,
+        h as usize,
+        nw.max(1) as usize,
+        nh.max(1) as usize,
+    );
+    let hx = coverage(w, nw);
+    let hy = coverage(h, nh);
+    let mut acc = vec![0f32; nw * nh * 3];
+    let mut row = vec![0f32; nw * 3];
+    let raw = src.as_raw();
+    for (y, ys) in hy.iter().enumerate() {
+        row.iter_mut().for_each(|v| *v = 0.0);
+        let line = &raw[y * w * 3..(y + 1) * w * 3];
+        for (x, xs) in hx.iter().enumerate() {
+            let px = &line[x * 3..x * 3 + 3];
+            for &(ox, wx) in xs.iter().flatten() {
+                for c in 0..3 {
+                    row[ox * 3 + c] += wx * px[c] as f32;
+                }
+            }
+        }
+        for &(oy, wy) in ys.iter().flatten() {
+            let dst = &mut acc[oy * nw * 3..(oy + 1) * nw * 3];
+            for (d, r) in dst.iter_mut().zip(&row) {
+                *d += wy * r;
+            }
+        }
+    }
+    let data = acc
+        .into_iter()
+        .map(|v| v.round().clamp(0.0, 255.0) as u8)
+        .collect();
+    RgbImage::from_raw(nw as u32, nh as u32, data).expect("buffer sized nw*nh*3")
+}
+
+/// For each of `n` source pixels, the (at most two) output pixels of `m` it overlaps and the
+/// weight (overlap / output pixel width in source pixels), for `m <= n`.
+fn coverage(n: usize, m: usize) -> Vec<[Option<(usize, f32)>; 2]> {
+    let step = n as f64 / m as f64;
+    (0..n)
+        .map(|i| {
+            let (a, b) = (i as f64, i as f64 + 1.0);
+            let o = ((a / step) as usize).min(m - 1);
+            let end = (o as f64 + 1.0) * step;
+            if b <= end + 1e-9 || o + 1 >= m {
+                [Some((o, (1.0 / step) as f32)), None]
+            } else {
+                let first = end - a;
+                [
+                    Some((o, (first / step) as f32)),
+                    Some((o + 1, ((b - end) / step) as f32)),
+                ]
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn png_bytes(img: &RgbImage) -> Vec<u8> {
+        let mut out = Vec::new();
+        img.write_to(&mut Cursor::new(&mut out), ImageFormat::Png)
+            .unwrap();
+        out
+    }
+
+    fn gradient(w: u32, h: u32) -> RgbImage {
+        RgbImage::from_fn(w, h, |x, y| image::Rgb([x as u8, y as u8, (x ^ y) as u8]))
+    }
+
+    #[test]
+    fn png_named_jpg_decodes_by_content() {
+        let img = gradient(20, 10);
+        let d = decode_image(&png_bytes(&img), "photo.jpg", &DecodeOptions::default()).unwrap();
+        assert_eq!(d.kind, ImageKind::Png);
+        assert_eq!(d.rgb, img);
+        assert_eq!((d.original_width, d.original_height), (20, 10));
+    }
+
+    #[test]
+    fn bad_inputs_are_clear_errors() {
+        let opts = DecodeOptions::default();
+        let e = decode_image(b"", "a.jpg", &opts).unwrap_err().to_string();
+        assert!(e.contains("empty"), "{e}");
+        let e = decode_image(b"hello world, not a picture", "a.jpg", &opts)
+            .unwrap_err()
+            .to_string();
+        assert!(e.starts_with("a.jpg: not an image"), "{e}");
+        let full = png_bytes(&gradient(64, 64));
+        let e = decode_image(&full[..full.len() / 2], "t.png", &opts)
+            .unwrap_err()
+            .to_string();
+        assert!(e.starts_with("t.png: "), "{e}");
+        let heic = b"\0\0\0\x18ftypheic\0\0\0\0mif1heic";
+        let e = decode_image(heic, "p.heic", &opts).unwrap_err().to_string();
+        assert!(e.contains("HEIF"), "{e}");
+        let e = decode_image(
+            &png_bytes(&gradient(1, 1)),
+            "one.png",
+            &DecodeOptions {
+                min_side: 16,
+                fit_within: None,
+            },
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("1x1") && e.contains("16x16"), "{e}");
+    }
+
+    /// PNG's chunk checksum (so a hand-edited header still parses).
+    fn crc32(bytes: &[u8]) -> u32 {
+        let mut c = !0u32;
+        for &b in bytes {
+            c ^= b as u32;
+            for _ in 0..8 {
+                c = if c & 1 != 0 {
+                    0xedb8_8320 ^ (c >> 1)
+                } else {
+                    c >> 1
+                };
+            }
+        }
+        !c
+    }
+
+    #[test]
+    fn huge_header_is_refused_before_allocation() {
+        // A PNG header claiming 60000x60000 followed by nothing.
+        let mut png = png_bytes(&gradient(2, 2));
+        png[16..20].copy_from_slice(&60000u32.to_be_bytes());
+        png[20..24].copy_from_slice(&60000u32.to_be_bytes());
+        let crc = crc32(&png[12..29]);
+        png[29..33].copy_from_slice(&crc.to_be_bytes());
+        let e = decode_image(&png, "big.png", &DecodeOptions::default())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("too large"), "{e}");
+    }
+
+    #[test]
+    fn area_downscale_averages_exactly() {
+        // 4x2 -> 2x1: each output is the mean of a 2x2 block.
+        let src = RgbImage::from_raw(
+            4,
+            2,
+            vec![
+                0, 0, 0, 10, 10, 10, 100, 0, 0, 200, 0, 0, //
+                20, 20, 20, 30, 30, 30, 0, 50, 0, 0, 50, 0,
+            ],
+        )
+        .unwrap();
+        let out = area_downscale(&src, 2, 1);
+        assert_eq!(out.as_raw(), &vec![15, 15, 15, 75, 25, 0]);
+        // A constant image stays constant at fractional ratios.
+        let flat = RgbImage::from_pixel(37, 23, image::Rgb([77, 128, 200]));
+        let out = area_downscale(&flat, 10, 7);
+        assert!(out.pixels().all(|p| p.0 == [77, 128, 200]));
+    }
+
+    #[test]
+    fn fit_within_downscales_and_reports_scale() {
+        let img = gradient(200, 100);
+        let d = decode_image(
+            &png_bytes(&img),
+            "x.png",
+            &DecodeOptions {
+                min_side: 1,
+                fit_within: Some(50),
+            },
+        )
+        .unwrap();
+        assert_eq!(d.rgb.dimensions(), (50, 25));
+        assert_eq!((d.original_width, d.original_height), (200, 100));
+        assert!((d.scale_to_original - 4.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn exif_orientation_is_applied() {
+        // A 4x2 JPEG with an APP1 Exif segment saying "rotate 90 clockwise" (orientation 6).
+        let img = RgbImage::from_fn(4, 2, |x, _| {
+            if x < 2 {
+                image::Rgb([255, 255, 255])
+            } else {
+                image::Rgb([0, 0, 0])
+            }
+        });
+        let mut jpg = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpg, 100)
+            .encode_image(&img)
+            .unwrap();
+        let tiff: Vec<u8> = [
+            &b"MM\0\x2a\0\0\0\x08"[..],
+            &[0, 1],
+            &[0x01, 0x12, 0, 3, 0, 0, 0, 1, 0, 6, 0, 0],
+            &[0, 0, 0, 0],
+        ]
+        .concat();
+        let mut app1 = vec![0xff, 0xe1];
+        let len = (2 + 6 + tiff.len()) as u16;
+        app1.extend_from_slice(&len.to_be_bytes());
+        app1.extend_from_slice(b"Exif\0\0");
+        app1.extend_from_slice(&tiff);
+        let with_exif: Vec<u8> = [&jpg[..2], &app1[..], &jpg[2..]].concat();
+        let d = decode_image(&with_exif, "rot.jpg", &DecodeOptions::default()).unwrap();
+        assert_eq!(d.orientation, image::metadata::Orientation::Rotate90);
+        assert_eq!(d.rgb.dimensions(), (2, 4));
+        assert_eq!((d.original_width, d.original_height), (2, 4));
+        // Rotating 90 degrees clockwise puts the left (white) half on top.
+        assert!(
+            d.rgb.get_pixel(0, 0).0[0] > 200,
+            "{:?}",
+            d.rgb.get_pixel(0, 0)
+        );
+        assert!(
+            d.rgb.get_pixel(0, 3).0[0] < 60,
+            "{:?}",
+            d.rgb.get_pixel(0, 3)
+        );
+    }
+
+    #[test]
+    fn alpha_is_composited_on_black() {
+        let rgba =
+            image::RgbaImage::from_raw(2, 1, vec![200, 100, 50, 255, 200, 100, 50, 0]).unwrap();
+        let mut bytes = Vec::new();
+        rgba.write_to(&mut Cursor::new(&mut bytes), ImageFormat::Png)
+            .unwrap();
+        let d = decode_image(&bytes, "a.png", &DecodeOptions::default()).unwrap();
+        assert_eq!(d.rgb.as_raw(), &vec![200, 100, 50, 0, 0, 0]);
+    }
+}
