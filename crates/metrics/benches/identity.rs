@@ -5,11 +5,13 @@
 use std::path::Path;
 use std::time::Duration;
 
-use criterion::{criterion_group, criterion_main, Criterion};
+use candle_core::{Device, Tensor};
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use gagavatar_metrics::{
     default_asset_dir, extract_image_chip, face_chip_details, FaceRect, IdentityNet, CHIP_PADDING,
     CHIP_SIZE,
 };
+use gagavatar_ops::{conv2d_with_algo, Conv2dSpec, ConvAlgo};
 use image::RgbImage;
 
 fn astronaut() -> RgbImage {
@@ -61,5 +63,40 @@ fn bench(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench);
+/// The network's convolution shapes: (name, cin, cout, kernel, stride, input side).
+const CONVS: &[(&str, usize, usize, usize, usize, usize)] = &[
+    ("stem_7x7s2_3to32_150", 3, 32, 7, 2, 150),
+    ("3x3_32_35", 32, 32, 3, 1, 35),
+    ("3x3s2_32to64_35", 32, 64, 3, 2, 35),
+    ("3x3_64_17", 64, 64, 3, 1, 17),
+    ("3x3_128_8", 128, 128, 3, 1, 8),
+    ("3x3_256_3", 256, 256, 3, 1, 3),
+];
+
+/// Which convolution kernel suits these small maps: the automatic choice (Winograd for 3x3
+/// stride 1) against the banded GEMM.
+fn convs(c: &mut Criterion) {
+    let dev = Device::Cpu;
+    for &(name, cin, cout, k, stride, side) in CONVS {
+        let x = Tensor::randn(0f32, 1.0, (1, cin, side, side), &dev).unwrap();
+        let w = Tensor::randn(0f32, 0.05, (cout, cin, k, k), &dev).unwrap();
+        let b = Tensor::randn(0f32, 1.0, cout, &dev).unwrap();
+        let spec = Conv2dSpec {
+            stride,
+            padding: if stride == 1 { k / 2 } else { 0 },
+        };
+        let mut g = c.benchmark_group(format!("identity_convs/{name}"));
+        g.sample_size(20)
+            .warm_up_time(Duration::from_millis(300))
+            .measurement_time(Duration::from_secs(2));
+        for algo in [ConvAlgo::Auto, ConvAlgo::Gemm] {
+            g.bench_function(BenchmarkId::from_parameter(format!("{algo:?}")), |bch| {
+                bch.iter(|| conv2d_with_algo(&x, &w, Some(&b), spec, algo).unwrap())
+            });
+        }
+        g.finish();
+    }
+}
+
+criterion_group!(benches, bench, convs);
 criterion_main!(benches);

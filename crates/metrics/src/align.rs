@@ -47,16 +47,9 @@ pub struct ChipDetails {
 }
 
 /// The chip placement for 5 landmarks (dlib's `get_face_chip_details(det, size, padding)`).
-pub fn face_chip_details(
-    landmarks: &Landmarks5,
-    size: usize,
-    padding: f64,
-) -> Result<ChipDetails> {
+pub fn face_chip_details(landmarks: &Landmarks5, size: usize, padding: f64) -> Result<ChipDetails> {
     if size == 0 || size > 4096 {
-        return Err(input_err(
-            "chip size",
-            format!("{size} is not in 1..=4096"),
-        ));
+        return Err(input_err("chip size", format!("{size} is not in 1..=4096")));
     }
     if !(padding.is_finite() && padding >= 0.0) {
         return Err(input_err(
@@ -86,7 +79,10 @@ pub fn face_chip_details(
     if !(scale.is_finite() && scale > 0.0) {
         return Err(input_err(
             "landmarks",
-            format!("degenerate landmarks {:?} (scale {scale})", landmarks.points),
+            format!(
+                "degenerate landmarks {:?} (scale {scale})",
+                landmarks.points
+            ),
         ));
     }
     let centre = tform.apply([s / 2.0, s / 2.0]);
@@ -169,11 +165,7 @@ impl Plane {
                 }
             }
         }
-        Plane {
-            w: ow,
-            h: oh,
-            data,
-        }
+        Plane { w: ow, h: oh, data }
     }
 }
 
@@ -190,7 +182,13 @@ pub fn extract_image_chip(img: &RgbImage, d: &ChipDetails) -> Result<RgbImage> {
             format!("{}x{} is not a chip size", d.cols, d.rows),
         ));
     }
-    let vals = [d.rect.left, d.rect.top, d.rect.right, d.rect.bottom, d.angle];
+    let vals = [
+        d.rect.left,
+        d.rect.top,
+        d.rect.right,
+        d.rect.bottom,
+        d.angle,
+    ];
     if !vals.iter().all(|v| v.is_finite()) || d.rect.is_empty() {
         return Err(input_err(
             "chip",
@@ -260,7 +258,10 @@ pub fn extract_image_chip(img: &RgbImage, d: &ChipDetails) -> Result<RgbImage> {
     if region.is_empty() || br < bl || bb < bt {
         return Err(input_err(
             "chip",
-            format!("the chip rectangle {:?} does not overlap the {iw}x{ih} image", d.rect),
+            format!(
+                "the chip rectangle {:?} does not overlap the {iw}x{ih} image",
+                d.rect
+            ),
         ));
     }
     let base = Plane::crop(img, bl, bt, br, bb);
@@ -358,5 +359,139 @@ pub fn mapping_to_chip(d: &ChipDetails) -> Affine2 {
             -(inv[0][0] * f.b[0] + inv[0][1] * f.b[1]),
             -(inv[1][0] * f.b[0] + inv[1][1] * f.b[1]),
         ],
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn landmarks(points: [[i64; 2]; NUM_LANDMARKS]) -> Landmarks5 {
+        Landmarks5 {
+            points,
+            precise: points.map(|p| [p[0] as f64, p[1] as f64]),
+        }
+    }
+
+    /// Rounding error of a few f64 operations on coordinates of a few hundred pixels.
+    const TOL: f64 = 1e-9;
+
+    #[test]
+    fn landmarks_land_near_the_template_in_the_chip() {
+        let lm = landmarks([[163, 104], [146, 105], [103, 101], [120, 103], [132, 134]]);
+        let d = face_chip_details(&lm, CHIP_SIZE, CHIP_PADDING).unwrap();
+        let to_chip = mapping_to_chip(&d);
+        // The least-squares fit leaves residuals of a few chip pixels for a real face.
+        for (p, t) in lm.points.iter().zip(TEMPLATE_5) {
+            let q = to_chip.apply([p[0] as f64, p[1] as f64]);
+            let want = [
+                (CHIP_PADDING + t[0]) / (1.0 + 2.0 * CHIP_PADDING) * CHIP_SIZE as f64,
+                (CHIP_PADDING + t[1]) / (1.0 + 2.0 * CHIP_PADDING) * CHIP_SIZE as f64,
+            ];
+            let err = ((q[0] - want[0]).powi(2) + (q[1] - want[1]).powi(2)).sqrt();
+            assert!(err < 6.0, "landmark {p:?} maps to {q:?}, template {want:?}");
+        }
+    }
+
+    #[test]
+    fn the_template_itself_gives_an_unrotated_unit_chip() {
+        // Landmarks exactly on the (padded, scaled) template: scale 1, angle 0, the chip
+        // rectangle is the chip itself.
+        let s = CHIP_SIZE as f64;
+        let pts: Vec<[f64; 2]> = TEMPLATE_5
+            .iter()
+            .map(|t| {
+                [
+                    (CHIP_PADDING + t[0]) / (1.0 + 2.0 * CHIP_PADDING) * s,
+                    (CHIP_PADDING + t[1]) / (1.0 + 2.0 * CHIP_PADDING) * s,
+                ]
+            })
+            .collect();
+        let a = similarity_transform(&pts, &pts);
+        assert!((a.m[0][0] - 1.0).abs() < TOL && a.m[1][0].abs() < TOL);
+        assert!(a.b[0].abs() < TOL && a.b[1].abs() < TOL);
+    }
+
+    #[test]
+    fn pyramid_level_of_a_constant_image_is_constant() {
+        let p = Plane {
+            w: 21,
+            h: 13,
+            data: vec![200; 21 * 13 * 3],
+        };
+        let d = p.pyramid_down();
+        assert_eq!((d.w, d.h), (9, 5));
+        assert!(d.data.iter().all(|v| *v == 200), "{:?}", &d.data[..9]);
+        let tiny = Plane {
+            w: 8,
+            h: 30,
+            data: vec![1; 8 * 30 * 3],
+        };
+        assert_eq!(tiny.pyramid_down().w, 0);
+    }
+
+    #[test]
+    fn pyramid_filter_weights_are_1_4_6_4_1() {
+        // A single bright pixel at (row 4, column 6) of an 11x11 image spreads as the outer
+        // product of [1 4 6 4 1] / 16 around output (1, 2) (input row 2 + 2r, column 2 + 2c).
+        let mut p = Plane {
+            w: 11,
+            h: 11,
+            data: vec![0; 11 * 11 * 3],
+        };
+        p.data[(4 * 11 + 6) * 3] = 255;
+        let d = p.pyramid_down();
+        let at = |r: usize, c: usize| d.data[(r * d.w + c) * 3] as u32;
+        // Output (r, c) sees input row 4 with weight taps[4 - 2r], column 6 with taps[6 - 2c].
+        let taps = [1u32, 4, 6, 4, 1];
+        for r in 0..d.h {
+            for c in 0..d.w {
+                let (dy, dx) = (4i64 - 2 * r as i64, 6i64 - 2 * c as i64);
+                let w = if (0..5).contains(&dy) && (0..5).contains(&dx) {
+                    taps[dy as usize] * taps[dx as usize]
+                } else {
+                    0
+                };
+                assert_eq!(at(r, c), 255 * w / 256, "output ({r}, {c})");
+            }
+        }
+    }
+
+    #[test]
+    fn unrotated_unscaled_chip_is_a_plain_copy_with_black_outside() {
+        let img = RgbImage::from_fn(40, 30, |x, y| image::Rgb([x as u8, y as u8, 7]));
+        let d = ChipDetails {
+            rect: DRect {
+                left: 30.0,
+                top: -2.0,
+                right: 39.0 + 5.0,
+                bottom: 7.0,
+            },
+            angle: 0.0,
+            rows: 10,
+            cols: 15,
+        };
+        let chip = extract_image_chip(&img, &d).unwrap();
+        assert_eq!(chip.get_pixel(0, 2).0, [30, 0, 7]);
+        assert_eq!(chip.get_pixel(9, 9).0, [39, 7, 7]);
+        assert_eq!(chip.get_pixel(10, 5).0, [0, 0, 0], "right of the image");
+        assert_eq!(chip.get_pixel(3, 1).0, [0, 0, 0], "above the image");
+    }
+
+    #[test]
+    fn degenerate_inputs_are_errors() {
+        let same = landmarks([[10, 10]; NUM_LANDMARKS]);
+        assert!(face_chip_details(&same, CHIP_SIZE, CHIP_PADDING).is_err());
+        let lm = landmarks([[163, 104], [146, 105], [103, 101], [120, 103], [132, 134]]);
+        assert!(face_chip_details(&lm, 0, CHIP_PADDING).is_err());
+        assert!(face_chip_details(&lm, CHIP_SIZE, f64::NAN).is_err());
+        assert!(face_chip_details(&lm, CHIP_SIZE, -0.1).is_err());
+        let img = RgbImage::new(64, 64);
+        let mut d = face_chip_details(&lm, CHIP_SIZE, CHIP_PADDING).unwrap();
+        // The face of these landmarks is far outside a 64x64 image.
+        assert!(extract_image_chip(&img, &d).is_err());
+        d.angle = f64::NAN;
+        assert!(extract_image_chip(&RgbImage::new(300, 300), &d).is_err());
+        assert!(extract_image_chip(&RgbImage::new(0, 0), &d).is_err());
     }
 }

@@ -21,7 +21,10 @@ pub const MAX_COORD: i64 = 1 << 24;
 impl FaceRect {
     /// A rectangle from its inclusive sides; `right >= left` and `bottom >= top`.
     pub fn new(left: i64, top: i64, right: i64, bottom: i64) -> Result<Self> {
-        if [left, top, right, bottom].iter().any(|v| v.abs() > MAX_COORD) {
+        if [left, top, right, bottom]
+            .iter()
+            .any(|v| v.abs() > MAX_COORD)
+        {
             return Err(input_err(
                 "face rectangle",
                 format!("coordinates ({left}, {top}, {right}, {bottom}) are out of range"),
@@ -256,7 +259,10 @@ pub fn similarity_transform(from: &[[f64; 2]], to: &[[f64; 2]]) -> Affine2 {
     let (p, q) = (a + d, c - b);
     // dlib keeps scale 1 and the identity for a degenerate (single-point) source.
     let m = if sigma_from != 0.0 {
-        [[p / sigma_from, -q / sigma_from], [q / sigma_from, p / sigma_from]]
+        [
+            [p / sigma_from, -q / sigma_from],
+            [q / sigma_from, p / sigma_from],
+        ]
     } else {
         [[1.0, 0.0], [0.0, 1.0]]
     };
@@ -284,7 +290,13 @@ mod tests {
     #[test]
     fn similarity_recovers_a_known_transform() {
         let (s, th, t) = (1.7f64, 0.4f64, [3.0, -2.0]);
-        let from = [[0.0, 0.0], [10.0, 1.0], [4.0, 7.0], [-3.0, 2.5], [1.0, -6.0]];
+        let from = [
+            [0.0, 0.0],
+            [10.0, 1.0],
+            [4.0, 7.0],
+            [-3.0, 2.5],
+            [1.0, -6.0],
+        ];
         let to: Vec<[f64; 2]> = from
             .iter()
             .map(|p| {
@@ -295,10 +307,7 @@ mod tests {
             })
             .collect();
         let a = similarity_transform(&from, &to);
-        let want = [
-            [s * th.cos(), -s * th.sin()],
-            [s * th.sin(), s * th.cos()],
-        ];
+        let want = [[s * th.cos(), -s * th.sin()], [s * th.sin(), s * th.cos()]];
         for i in 0..2 {
             for j in 0..2 {
                 assert!(

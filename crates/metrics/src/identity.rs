@@ -38,9 +38,7 @@ use crate::align::{extract_image_chip, face_chip_details, CHIP_PADDING, CHIP_SIZ
 use crate::error::{input_err, Result};
 use crate::geometry::FaceRect;
 use crate::shape_predictor::{Landmarks5, ShapePredictor};
-use crate::weights::{
-    check_tensors, read_tensors, weights_err, RESNET_FILE, SHAPE_PREDICTOR_FILE,
-};
+use crate::weights::{check_tensors, read_tensors, weights_err, RESNET_FILE, SHAPE_PREDICTOR_FILE};
 
 /// The descriptor's length.
 pub const EMBEDDING_DIM: usize = 128;
@@ -75,6 +73,18 @@ impl Conv {
         })
     }
 
+    /// This convolution followed by `affine`, as one convolution: `w gamma`, `b gamma + beta`
+    /// per output channel (dlib's affine layers only ever follow a convolution here).
+    pub fn fold_affine(&self, affine: &Affine) -> Result<Self> {
+        let c = self.bias.dim(0)?;
+        let g = affine.gamma.reshape((c, 1, 1, 1))?;
+        Ok(Self {
+            weight: self.weight.broadcast_mul(&g)?,
+            bias: ((&self.bias * affine.gamma.flatten_all()?)? + affine.beta.flatten_all()?)?,
+            spec: self.spec,
+        })
+    }
+
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         Ok(conv2d(x, &self.weight, Some(&self.bias), self.spec)?)
     }
@@ -100,51 +110,52 @@ impl Affine {
     }
 }
 
-/// Convolution 7x7/2, affine, ReLU, max pool 3x3/2.
+/// Convolution 7x7/2, affine, ReLU, max pool 3x3/2 (the affine folded into the convolution).
 #[derive(Debug, Clone)]
 pub struct Stem {
     conv: Conv,
-    affine: Affine,
 }
 
 impl Stem {
     pub fn new(vb: VarBuilder) -> Result<Self> {
+        let conv = Conv::new(vb.pp("conv"), 3, STEM_CHANNELS, 7, 2)?;
+        let affine = Affine::new(vb.pp("affine"), STEM_CHANNELS)?;
         Ok(Self {
-            conv: Conv::new(vb.pp("conv"), 3, STEM_CHANNELS, 7, 2)?,
-            affine: Affine::new(vb.pp("affine"), STEM_CHANNELS)?,
+            conv: conv.fold_affine(&affine)?,
         })
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let y = self.affine.forward(&self.conv.forward(x)?)?.relu()?;
+        let y = self.conv.forward(x)?.relu()?;
         Ok(y.max_pool2d_with_stride(3, 2)?)
     }
 }
 
-/// One residual block (`ares` / `ares_down` of dlib's example).
+/// One residual block (`ares` / `ares_down` of dlib's example), each affine folded into the
+/// convolution before it.
 #[derive(Debug, Clone)]
 pub struct ResBlock {
     conv1: Conv,
-    affine1: Affine,
     conv2: Conv,
-    affine2: Affine,
     down: bool,
 }
 
 impl ResBlock {
     pub fn new(vb: VarBuilder, cin: usize, cout: usize, down: bool) -> Result<Self> {
+        let conv1 = Conv::new(vb.pp("conv1"), cin, cout, 3, if down { 2 } else { 1 })?;
+        let affine1 = Affine::new(vb.pp("affine1"), cout)?;
+        let conv2 = Conv::new(vb.pp("conv2"), cout, cout, 3, 1)?;
+        let affine2 = Affine::new(vb.pp("affine2"), cout)?;
         Ok(Self {
-            conv1: Conv::new(vb.pp("conv1"), cin, cout, 3, if down { 2 } else { 1 })?,
-            affine1: Affine::new(vb.pp("affine1"), cout)?,
-            conv2: Conv::new(vb.pp("conv2"), cout, cout, 3, 1)?,
-            affine2: Affine::new(vb.pp("affine2"), cout)?,
+            conv1: conv1.fold_affine(&affine1)?,
+            conv2: conv2.fold_affine(&affine2)?,
             down,
         })
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let y = self.affine1.forward(&self.conv1.forward(x)?)?.relu()?;
-        let y = self.affine2.forward(&self.conv2.forward(&y)?)?;
+        let y = self.conv1.forward(x)?.relu()?;
+        let y = self.conv2.forward(&y)?;
         let shortcut = if self.down {
             x.avg_pool2d_with_stride(2, 2)?
         } else {
@@ -250,7 +261,10 @@ impl FaceResNet {
         check_tensors(path, &tensors, &expected)?;
         for (k, t) in &tensors {
             if !matches!(t.dtype(), DType::F32 | DType::F16 | DType::BF16) {
-                return Err(weights_err(path, format!("`{k}` is {:?}, not a float", t.dtype())));
+                return Err(weights_err(
+                    path,
+                    format!("`{k}` is {:?}, not a float", t.dtype()),
+                ));
             }
         }
         let vb = VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu);
@@ -442,5 +456,106 @@ impl IdentityNet {
         let ea = self.embed(a, rect_a)?;
         let eb = self.embed(b, rect_b)?;
         csim(&ea, &eb)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::HashMap;
+
+    /// f32 results of the same arithmetic in another order.
+    const TOL: f32 = 1e-5;
+
+    fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
+        (a - b)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .max(0)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap()
+    }
+
+    #[test]
+    fn folded_affine_equals_convolution_then_affine() {
+        let dev = Device::Cpu;
+        let mut t = HashMap::new();
+        t.insert(
+            "c.weight".to_string(),
+            Tensor::randn(0f32, 0.2, (8, 5, 3, 3), &dev).unwrap(),
+        );
+        t.insert(
+            "c.bias".to_string(),
+            Tensor::randn(0f32, 1.0, 8, &dev).unwrap(),
+        );
+        t.insert(
+            "a.gamma".to_string(),
+            Tensor::randn(0f32, 1.0, 8, &dev).unwrap(),
+        );
+        t.insert(
+            "a.beta".to_string(),
+            Tensor::randn(0f32, 1.0, 8, &dev).unwrap(),
+        );
+        let vb = VarBuilder::from_tensors(t, DType::F32, &dev);
+        for stride in [1, 2] {
+            let conv = Conv::new(vb.pp("c"), 5, 8, 3, stride).unwrap();
+            let affine = Affine::new(vb.pp("a"), 8).unwrap();
+            let x = Tensor::randn(0f32, 1.0, (2, 5, 11, 9), &dev).unwrap();
+            let want = affine.forward(&conv.forward(&x).unwrap()).unwrap();
+            let got = conv.fold_affine(&affine).unwrap().forward(&x).unwrap();
+            assert_eq!(got.dims(), want.dims());
+            let d = max_diff(&got, &want);
+            assert!(d < TOL, "stride {stride}: max |diff| {d}");
+        }
+    }
+
+    #[test]
+    fn zero_extended_addition_matches_dlib() {
+        let dev = Device::Cpu;
+        // [1, 2, 2, 2] block output + [1, 1, 3, 3] shortcut -> [1, 2, 3, 3].
+        let a = Tensor::arange(1f32, 9.0, &dev)
+            .unwrap()
+            .reshape((1, 2, 2, 2))
+            .unwrap();
+        let b = Tensor::full(10f32, (1, 1, 3, 3), &dev).unwrap();
+        let y = add_zero_extended(&a, &b).unwrap();
+        assert_eq!(y.dims(), &[1, 2, 3, 3]);
+        let v = y.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        #[rustfmt::skip]
+        let want = [
+            11.0, 12.0, 10.0,   13.0, 14.0, 10.0,   10.0, 10.0, 10.0,
+            5.0, 6.0, 0.0,      7.0, 8.0, 0.0,      0.0, 0.0, 0.0,
+        ];
+        assert_eq!(v, want);
+    }
+
+    #[test]
+    fn csim_is_scale_invariant_and_refuses_zero_or_nan() {
+        let a = Embedding {
+            descriptor: std::array::from_fn(|i| (i as f32 * 0.37).sin()),
+        };
+        let b = Embedding {
+            descriptor: a.descriptor.map(|v| v * 3.5),
+        };
+        assert!((csim(&a, &b).unwrap() - 1.0).abs() < 1e-12);
+        let neg = Embedding {
+            descriptor: a.descriptor.map(|v| -v),
+        };
+        assert!((csim(&a, &neg).unwrap() + 1.0).abs() < 1e-12);
+        let unit = a.unit().unwrap();
+        let n: f64 = unit.iter().map(|v| (*v as f64).powi(2)).sum();
+        assert!((n - 1.0).abs() < 1e-6);
+        let zero = Embedding {
+            descriptor: [0.0; EMBEDDING_DIM],
+        };
+        assert!(csim(&a, &zero).is_err());
+        assert!(zero.unit().is_err());
+        let mut nan = a;
+        nan.descriptor[3] = f32::NAN;
+        assert!(csim(&a, &nan).is_err());
     }
 }

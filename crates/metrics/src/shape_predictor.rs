@@ -151,10 +151,16 @@ impl ShapePredictor {
         let anchor = to_vec::<u32>(&t["anchor_idx"])?;
         let deltas = to_vec::<f32>(&t["deltas"])?;
         if idx1.iter().chain(&idx2).any(|&i| i as usize >= np) {
-            return Err(weights_err(path, "a split reads a feature pixel that does not exist"));
+            return Err(weights_err(
+                path,
+                "a split reads a feature pixel that does not exist",
+            ));
         }
         if anchor.iter().any(|&a| a as usize >= l) {
-            return Err(weights_err(path, "a feature pixel is anchored to no landmark"));
+            return Err(weights_err(
+                path,
+                "a feature pixel is anchored to no landmark",
+            ));
         }
         let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
         if !finite(&initial) || !finite(&thresh) || !finite(&leaves) || !finite(&deltas) {
@@ -273,7 +279,10 @@ impl ShapePredictor {
 /// the bottom-right one (inclusive corners, dlib's `unnormalizing_tform`).
 fn unnormalizing(r: FaceRect) -> Affine2 {
     Affine2 {
-        m: [[(r.right - r.left) as f64, 0.0], [0.0, (r.bottom - r.top) as f64]],
+        m: [
+            [(r.right - r.left) as f64, 0.0],
+            [0.0, (r.bottom - r.top) as f64],
+        ],
         b: [r.left as f64, r.top as f64],
     }
 }

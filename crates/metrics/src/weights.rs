@@ -21,7 +21,9 @@ pub fn default_asset_dir() -> PathBuf {
     if local.join(RESNET_FILE).is_file() {
         return local;
     }
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(ASSET_DIR)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../..")
+        .join(ASSET_DIR)
 }
 
 pub(crate) fn weights_err(path: &Path, reason: impl Into<String>) -> MetricsError {
@@ -51,7 +53,10 @@ pub(crate) fn check_tensors(
             None => problems.push(format!("missing `{key}`")),
             Some(t) => {
                 if t.dims() != shape.as_slice() {
-                    problems.push(format!("`{key}` has shape {:?}, expected {shape:?}", t.dims()));
+                    problems.push(format!(
+                        "`{key}` has shape {:?}, expected {shape:?}",
+                        t.dims()
+                    ));
                 }
                 if let Some(d) = dtype {
                     if t.dtype() != *d {

@@ -197,7 +197,12 @@ fn case_image(dir: &Path, golden: &Golden, case: &Case) -> RgbImage {
         case.name
     );
     if let Some(want) = case.image_checksum {
-        assert_eq!(checksum(&img), want, "{}: the re-created image differs", case.name);
+        assert_eq!(
+            checksum(&img),
+            want,
+            "{}: the re-created image differs",
+            case.name
+        );
     }
     img
 }
@@ -352,4 +357,57 @@ fn matches_dlib_on_extra_frames() {
     let dir = std::env::var_os("GAGAVATAR_IDENTITY_EXTRA").expect("GAGAVATAR_IDENTITY_EXTRA");
     let out = check_dir(Path::new(&dir));
     assert_within(&out);
+}
+
+/// Same person across transforms: near 1; the astronaut against the camera man: far lower.
+/// (dlib's descriptors all lie in a narrow cone, so different people still have cosines of
+/// about 0.8; dlib separates people by a Euclidean distance of 0.6.)
+const MIN_SAME_PERSON_COSINE: f64 = 0.95;
+const MAX_OTHER_PERSON_COSINE: f64 = 0.9;
+const DLIB_SAME_PERSON_DISTANCE: f64 = 0.6;
+
+#[test]
+fn same_person_is_close_and_other_person_is_far() {
+    let dir = golden_dir();
+    let golden: Golden = serde_json::from_str(
+        &std::fs::read_to_string(dir.join("identity_dlib.json")).expect("golden json"),
+    )
+    .expect("golden json parses");
+    let net = IdentityNet::load(&default_asset_dir()).unwrap();
+    let mut emb = Vec::new();
+    for case in &golden.cases {
+        let img = case_image(&dir, &golden, case);
+        let [l, t, r, b] = case.rect;
+        let e = net.embed(&img, FaceRect::new(l, t, r, b).unwrap()).unwrap();
+        emb.push((
+            case.source.clone().unwrap_or_default(),
+            case.name.clone(),
+            e,
+        ));
+    }
+    let dist = |a: &Embedding, b: &Embedding| -> f64 {
+        a.descriptor
+            .iter()
+            .zip(&b.descriptor)
+            .map(|(x, y)| ((x - y) as f64).powi(2))
+            .sum::<f64>()
+            .sqrt()
+    };
+    let (mut min_same, mut max_other) = (f64::INFINITY, f64::NEG_INFINITY);
+    for (sa, na, ea) in &emb {
+        for (sb, nb, eb) in &emb {
+            let c = csim(ea, eb).unwrap();
+            let d = dist(ea, eb);
+            if sa == sb {
+                min_same = min_same.min(c);
+                assert!(c >= MIN_SAME_PERSON_COSINE, "{na} vs {nb}: cosine {c}");
+                assert!(d < DLIB_SAME_PERSON_DISTANCE, "{na} vs {nb}: distance {d}");
+            } else {
+                max_other = max_other.max(c);
+                assert!(c <= MAX_OTHER_PERSON_COSINE, "{na} vs {nb}: cosine {c}");
+                assert!(d > DLIB_SAME_PERSON_DISTANCE, "{na} vs {nb}: distance {d}");
+            }
+        }
+    }
+    println!("same person: min cosine {min_same:.4}; different people: max cosine {max_other:.4}");
 }
