@@ -308,16 +308,16 @@ mod tests {
             .collect();
         let a = similarity_transform(&from, &to);
         let want = [[s * th.cos(), -s * th.sin()], [s * th.sin(), s * th.cos()]];
-        for i in 0..2 {
-            for j in 0..2 {
-                assert!(
-                    (a.m[i][j] - want[i][j]).abs() < TOL,
-                    "m[{i}][{j}] expected {} got {}",
-                    want[i][j],
-                    a.m[i][j]
-                );
+        for (i, (row, want_row)) in a.m.iter().zip(&want).enumerate() {
+            for (j, (got, w)) in row.iter().zip(want_row).enumerate() {
+                assert!((got - w).abs() < TOL, "m[{i}][{j}] expected {w} got {got}");
             }
-            assert!((a.b[i] - t[i]).abs() < TOL, "b[{i}]");
+            assert!(
+                (a.b[i] - t[i]).abs() < TOL,
+                "b[{i}]: expected {} got {}",
+                t[i],
+                a.b[i]
+            );
         }
     }
 
