@@ -481,6 +481,13 @@ mod tests {
     }
 
     #[test]
+    fn the_pipeline_can_be_shared_across_threads() {
+        fn shared<T: Send + Sync>() {}
+        shared::<IdentityNet>();
+        shared::<Embedding>();
+    }
+
+    #[test]
     fn folded_affine_equals_convolution_then_affine() {
         let dev = Device::Cpu;
         let mut t = HashMap::new();
