@@ -261,10 +261,10 @@ def main():
     import skimage
 
     os.makedirs(os.path.join(args.out, "chips"), exist_ok=True)
-    tmp = tempfile.mkdtemp()
-    models = extract_models(args.sdist, tmp)
-    sp = dlib.shape_predictor(models["shape_predictor_5_face_landmarks.dat"])
-    fr = dlib.face_recognition_model_v1(models["dlib_face_recognition_resnet_model_v1.dat"])
+    with tempfile.TemporaryDirectory() as tmp:
+        models = extract_models(args.sdist, tmp)
+        sp = dlib.shape_predictor(models["shape_predictor_5_face_landmarks.dat"])
+        fr = dlib.face_recognition_model_v1(models["dlib_face_recognition_resnet_model_v1.dat"])
 
     cases = []
     descs = {}
