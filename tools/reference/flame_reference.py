@@ -66,8 +66,10 @@ class Flame:
         self.static_bary = as_f32_f64(g("static_lmk_bary_coords")).reshape(-1, 3)
         self.dyn_faces = g("dynamic_lmk_faces_idx").astype(np.int64)
         self.dyn_bary = as_f32_f64(g("dynamic_lmk_bary_coords"))
-        self.full_faces = g("full_lmk_faces_idx").astype(np.int64).reshape(-1)
-        self.full_bary = as_f32_f64(g("full_lmk_bary_coords")).reshape(-1, 3)
+        # The release's FLAME reads the 70-point `_with_eye` pair (TRACKING.md section 4); a
+        # plain `full_lmk_*` pair, when present, is not used.
+        self.full_faces = g("full_lmk_faces_idx_with_eye").astype(np.int64).reshape(-1)
+        self.full_bary = as_f32_f64(g("full_lmk_bary_coords_with_eye")).reshape(-1, 3)
 
     def forward(self, shape, exp, pose, eye):
         b = shape.shape[0]
@@ -208,9 +210,14 @@ def tiny_asset(rng):
     w /= w.sum(axis=1, keepdims=True)
     kintree = np.array([[4294967295, 0, 1, 1, 1], [0, 1, 2, 3, 4]], dtype=np.int64)
 
-    def bary(*shape):
-        b = rng.random(size=shape + (3,)) + 0.05
+    def bary(*shape, gen=None):
+        b = (gen or rng).random(size=shape + (3,)) + 0.05
         return b / b.sum(axis=-1, keepdims=True)
+
+    # Its own stream, so the draws of the other tensors (and of the golden inputs) stay as they
+    # were before the `_with_eye` pair was added.
+    eye_rng = np.random.default_rng(7070)
+    eye_bary = lambda *shape: bary(*shape, gen=eye_rng)
 
     f32 = lambda a: torch.from_numpy(np.asarray(a, dtype=np.float32))
     # posedirs saved as a strided (transposed) view, J_regressor as float64, one index table as
@@ -231,8 +238,12 @@ def tiny_asset(rng):
             "static_lmk_bary_coords": f32(bary(5)),
             "dynamic_lmk_faces_idx": torch.from_numpy(rng.integers(0, nf, size=(79, 3)).astype(np.int64)),
             "dynamic_lmk_bary_coords": f32(bary(79, 3)),
+            # A plain pair the reader must skip (different values from the `_with_eye` pair).
             "full_lmk_faces_idx": torch.from_numpy(rng.integers(0, nf, size=(1, 7)).astype(np.int32)),
             "full_lmk_bary_coords": f32(bary(1, 7)),
+            "full_lmk_faces_idx_with_eye": torch.from_numpy(
+                eye_rng.integers(0, nf, size=(1, 7)).astype(np.int32)),
+            "full_lmk_bary_coords_with_eye": f32(eye_bary(1, 7)),
         },
         "note": "tiny random FLAME-format asset for loader tests",
     }

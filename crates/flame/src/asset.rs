@@ -16,11 +16,13 @@
 //! | `lmk_embeddings.static_lmk_bary_coords` | `[Ls, 3]` | float |
 //! | `lmk_embeddings.dynamic_lmk_faces_idx` | `[79, Ld]` (release: Ld = 17) | integer |
 //! | `lmk_embeddings.dynamic_lmk_bary_coords` | `[79, Ld, 3]` | float |
-//! | `lmk_embeddings.full_lmk_faces_idx` | `[1, Lf]` or `[Lf]` (release: 70) | integer |
-//! | `lmk_embeddings.full_lmk_bary_coords` | `[1, Lf, 3]` or `[Lf, 3]` | float |
+//! | `lmk_embeddings.full_lmk_faces_idx_with_eye` | `[1, Lf]` or `[Lf]` (release: 70) | integer |
+//! | `lmk_embeddings.full_lmk_bary_coords_with_eye` | `[1, Lf, 3]` or `[Lf, 3]` | float |
 //!
 //! Floats of any width are converted to f32 (the release stores f32); integers to i64. Other
-//! keys in the file are ignored.
+//! keys in the file are ignored, among them a plain `full_lmk_faces_idx` /
+//! `full_lmk_bary_coords` (68 points without the pupils): the release's FLAME reads only the
+//! `_with_eye` pair (TRACKING.md section 4), so that is the 70-point set fitted and returned.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -48,8 +50,9 @@ pub mod keys {
     pub const STATIC_BARY: &str = "lmk_embeddings.static_lmk_bary_coords";
     pub const DYNAMIC_FACES: &str = "lmk_embeddings.dynamic_lmk_faces_idx";
     pub const DYNAMIC_BARY: &str = "lmk_embeddings.dynamic_lmk_bary_coords";
-    pub const FULL_FACES: &str = "lmk_embeddings.full_lmk_faces_idx";
-    pub const FULL_BARY: &str = "lmk_embeddings.full_lmk_bary_coords";
+    /// The 70-point set (iBUG 68 with a static contour, then the two pupils).
+    pub const FULL_FACES: &str = "lmk_embeddings.full_lmk_faces_idx_with_eye";
+    pub const FULL_BARY: &str = "lmk_embeddings.full_lmk_bary_coords_with_eye";
 }
 
 #[derive(Debug, Clone, PartialEq)]

@@ -7,9 +7,14 @@
 //!   `R_global R_neck`, converted to whole degrees (clamped at +39, rounded half-to-even as
 //!   `torch.round` does), and picks row `yaw` (0..39) or `39 - yaw` (40..78, negative yaw; below
 //!   -39 -> 78) of the `[79, 17]` table.
-//! * The full-with-eye embedding (release: 70 = 68 + 2 pupils) is a fixed set too.
+//! * The full-with-eye embedding (release: 70 = 68 + 2 pupils; keys `full_lmk_*_with_eye`) is a
+//!   fixed set too: iBUG 0..67 with a static jaw contour, then the pupils of the image-left eye
+//!   (the subject's right, FLAME -x) and of the other eye.
 //!
-//! `landmarks68` is the standard fitter output `[dynamic contour, static]`.
+//! `lmk68` is the standard fitter output `[dynamic contour, static]`. The release's FLAME
+//! forward returns the plain full-with-eye embedding (`full`, TRACKING.md section 4); that is
+//! what its tracker fits and what `gagavatar-track` fits. (Its eyelid "reselect", which swaps 8
+//! lid points for vertices, only builds VGGHead targets and is not reproduced.)
 
 use candle_core::{DType, Tensor};
 
@@ -69,7 +74,8 @@ pub fn head_rotation(global: [f64; 3], neck: [f64; 3]) -> [[f64; 3]; 3] {
 pub struct Landmarks {
     /// `[B, Ld + Ls, 3]` (release: 68), dynamic contour first, scaled like the vertices.
     pub lmk68: Tensor,
-    /// `[B, Lf, 3]` (release: 70) from the full-with-eye embedding.
+    /// `[B, Lf, 3]` (release: 70) from the full-with-eye embedding: what the release's FLAME
+    /// forward returns as its landmarks.
     pub full: Tensor,
     /// The dynamic-table row used for each batch element.
     pub dynamic_rows: Vec<usize>,

@@ -601,9 +601,10 @@ pub fn synthesize(seed: u64) -> FlameAsset {
             dynamic.push(at_tphi(0.72 - 0.22 * a * a, phi));
         }
     }
+    // The 70-point `_with_eye` set: iBUG 0..67 with the frontal (static) contour, then the
+    // pupils: the front pole of each eyeball, right (-x, image-left) then left.
     let mut full: Vec<(u32, [f32; 3])> = dynamic[..17].to_vec();
     full.extend_from_slice(&stat);
-    // Pupils: the front pole of each eyeball, right (-x) then left.
     full.push((pupil_faces[1], [1.0, 0.0, 0.0]));
     full.push((pupil_faces[0], [1.0, 0.0, 0.0]));
     let split = |v: &[(u32, [f32; 3])]| -> (Vec<u32>, Vec<[f32; 3]>) { v.iter().copied().unzip() };

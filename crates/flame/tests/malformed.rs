@@ -71,6 +71,9 @@ fn missing_key_is_named() {
         "flame_model.posedirs",
         "lmk_embeddings.dynamic_lmk_bary_coords",
         "flame_model.f",
+        // The 70-point set; the plain `full_lmk_*` pair beside it is not a substitute.
+        "lmk_embeddings.full_lmk_faces_idx_with_eye",
+        "lmk_embeddings.full_lmk_bary_coords_with_eye",
     ] {
         let err = load_modified(&dir, "m.safetensors", |m| {
             m.remove(key);

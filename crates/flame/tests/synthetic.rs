@@ -20,8 +20,11 @@ fn release_shapes() -> Vec<(&'static str, Vec<usize>)> {
         ("lmk_embeddings.static_lmk_bary_coords", vec![51, 3]),
         ("lmk_embeddings.dynamic_lmk_faces_idx", vec![79, 17]),
         ("lmk_embeddings.dynamic_lmk_bary_coords", vec![79, 17, 3]),
-        ("lmk_embeddings.full_lmk_faces_idx", vec![1, 70]),
-        ("lmk_embeddings.full_lmk_bary_coords", vec![1, 70, 3]),
+        ("lmk_embeddings.full_lmk_faces_idx_with_eye", vec![1, 70]),
+        (
+            "lmk_embeddings.full_lmk_bary_coords_with_eye",
+            vec![1, 70, 3],
+        ),
     ]
 }
 
@@ -328,4 +331,82 @@ fn blendshapes_deform_smoothly_and_expression_spares_the_skull() {
         "first shape component peak {max_shape}"
     );
     assert!(a.posedirs.iter().any(|&x| x != 0.0));
+}
+
+/// The 70-point `_with_eye` set is laid out like iBUG 68 + two pupils on the neutral head seen
+/// from the front (FLAME -x is image-left, +y is up), so a landmark fitter finds on the
+/// synthetic head the structure it finds on a real one.
+#[test]
+fn with_eye_landmarks_follow_the_ibug_layout() {
+    let (_, m) = model();
+    let (_, _, f) = run(&m, [0.0; 6], [0.0; 6]);
+    assert_eq!(f.len(), 70);
+    let (x, y) = (|i: usize| f[i][0], |i: usize| f[i][1]);
+    // Left-to-right runs in image order (increasing x).
+    for run in [
+        (0..=8).collect::<Vec<_>>(),
+        (8..=16).collect(),
+        (17..=21).collect(),
+        (22..=26).collect(),
+        (31..=35).collect(),
+        vec![36, 37, 38, 39],
+        vec![42, 43, 44, 45],
+        vec![48, 49, 50, 51, 52, 53, 54],
+        vec![60, 61, 62, 63, 64],
+    ] {
+        for w in run.windows(2) {
+            assert!(
+                x(w[0]) < x(w[1]),
+                "x[{}] {} >= x[{}] {}",
+                w[0],
+                x(w[0]),
+                w[1],
+                x(w[1])
+            );
+        }
+    }
+    // Mirror pairs (contour, brows, eye corners, mouth corners) sit at opposite x.
+    for (a, b) in [(0, 16), (17, 26), (36, 45), (39, 42), (48, 54), (68, 69)] {
+        assert!(
+            (x(a) + x(b)).abs() < 0.02,
+            "pair {a}/{b}: x {} {}",
+            x(a),
+            x(b)
+        );
+        assert!(x(a) < 0.0, "{a} should be on the subject's right (-x)");
+    }
+    // Pupils between their eye corners, at eye height.
+    for (p, outer, inner) in [(68, 36, 39), (69, 45, 42)] {
+        let (lo, hi) = (x(outer).min(x(inner)), x(outer).max(x(inner)));
+        assert!(
+            lo < x(p) && x(p) < hi,
+            "pupil {p} x {} not in ({lo}, {hi})",
+            x(p)
+        );
+        assert!(
+            (y(p) - y(outer)).abs() < 0.05,
+            "pupil {p} y {} vs {}",
+            y(p),
+            y(outer)
+        );
+    }
+    // Top to bottom: brows, eyes, nose bridge to tip, mouth, chin.
+    let chain = [19, 37, 27, 30, 33, 51, 62, 66, 57, 8];
+    for w in chain.windows(2) {
+        assert!(
+            y(w[0]) > y(w[1]),
+            "y[{}] {} <= y[{}] {}",
+            w[0],
+            y(w[0]),
+            w[1],
+            y(w[1])
+        );
+    }
+    // The nose tip stands out in front of the eyes.
+    assert!(
+        f[30][2] > f[39][2] + 0.05,
+        "nose tip z {} vs eye z {}",
+        f[30][2],
+        f[39][2]
+    );
 }
