@@ -149,18 +149,30 @@ pub(crate) fn i420_to_rgb(p: &I420<'_>) -> Vec<u8> {
 pub(crate) fn i420_to_rgb_with(p: &I420<'_>, m: YuvMatrix) -> Vec<u8> {
     let f = SwsFactors::new(m);
     let mut out = vec![0u8; p.width * p.height * 3];
+    let px = |o: &mut [u8], y: u8, (r, g, b): (i32, i32, i32)| {
+        let l = ((y as i32 * 8 - f.y_offset) * f.y) >> 16;
+        o[0] = (l + r).clamp(0, 255) as u8;
+        o[1] = (l + g).clamp(0, 255) as u8;
+        o[2] = (l + b).clamp(0, 255) as u8;
+    };
     for y in 0..p.height {
-        let yrow = &p.y[y * p.y_stride..];
-        let urow = &p.u[(y / 2) * p.uv_stride..];
-        let vrow = &p.v[(y / 2) * p.uv_stride..];
+        let yrow = &p.y[y * p.y_stride..][..p.width];
+        let urow = &p.u[(y / 2) * p.uv_stride..][..p.width.div_ceil(2)];
+        let vrow = &p.v[(y / 2) * p.uv_stride..][..p.width.div_ceil(2)];
         let orow = &mut out[y * p.width * 3..(y + 1) * p.width * 3];
-        for (x, o) in orow.chunks_exact_mut(3).enumerate() {
-            let l = ((yrow[x] as i32 * 8 - f.y_offset) * f.y) >> 16;
-            let u = urow[x / 2] as i32 * 8 - 1024;
-            let v = vrow[x / 2] as i32 * 8 - 1024;
-            o[0] = (l + ((v * f.vr) >> 16)).clamp(0, 255) as u8;
-            o[1] = (l + ((u * f.ug) >> 16) + ((v * f.vg) >> 16)).clamp(0, 255) as u8;
-            o[2] = (l + ((u * f.ub) >> 16)).clamp(0, 255) as u8;
+        // Two pixels share a chroma sample: its three terms are computed once per pair.
+        for (((o, ys), &u), &v) in orow.chunks_mut(6).zip(yrow.chunks(2)).zip(urow).zip(vrow) {
+            let u = u as i32 * 8 - 1024;
+            let v = v as i32 * 8 - 1024;
+            let c = (
+                (v * f.vr) >> 16,
+                ((u * f.ug) >> 16) + ((v * f.vg) >> 16),
+                (u * f.ub) >> 16,
+            );
+            px(&mut o[..3], ys[0], c);
+            if let (Some(&y1), Some(o1)) = (ys.get(1), o.get_mut(3..6)) {
+                px(o1, y1, c);
+            }
         }
     }
     out

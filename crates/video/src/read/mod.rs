@@ -345,7 +345,8 @@ fn plan(path: &Path, opts: &ReadOptions) -> Result<Plan, VideoError> {
     if meta.is_dir() {
         return Ok(Plan::Images(list_images(path)?));
     }
-    let mut head = [0u8; 512];
+    // Enough for the track headers of Matroska and AVI files, to name their codec.
+    let mut head = vec![0u8; 64 << 10];
     let n = {
         use std::io::Read;
         let mut f = std::fs::File::open(path).map_err(|e| VideoError::io(path, e))?;

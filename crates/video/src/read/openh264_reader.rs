@@ -73,13 +73,13 @@ pub(crate) fn sniff_container(head: &[u8]) -> Option<&'static str> {
     {
         Some("mp4")
     } else if at(0, &[0x1a, 0x45, 0xdf, 0xa3]) {
-        Some("a Matroska / WebM video")
+        Some("a Matroska / WebM file")
     } else if at(0, b"RIFF") && at(8, b"AVI ") {
-        Some("an AVI video")
+        Some("an AVI file")
     } else if at(0, b"OggS") {
-        Some("an Ogg video")
+        Some("an Ogg file")
     } else if at(0, b"FLV") {
-        Some("an FLV video")
+        Some("an FLV file")
     } else if at(0, &[0, 0, 1, 0xba]) {
         Some("an MPEG program stream")
     } else if head.first() == Some(&0x47) && head.get(188) == Some(&0x47) {
@@ -89,6 +89,41 @@ pub(crate) fn sniff_container(head: &[u8]) -> Option<&'static str> {
     } else {
         None
     }
+}
+
+/// The video codec of a Matroska / WebM or AVI file, from its track headers near the start, in
+/// words; `None` when not found there.
+pub(crate) fn sniff_codec(head: &[u8]) -> Option<&'static str> {
+    // Matroska: a CodecID element (0x86, a one-byte size) holding "V_...".
+    for (i, w) in head.windows(3).enumerate() {
+        if w[0] == 0x86 && w[1] & 0x80 != 0 && &head[i + 2..(i + 4).min(head.len())] == b"V_" {
+            let len = usize::from(w[1] & 0x7f);
+            let id = head.get(i + 2..i + 2 + len)?;
+            return Some(match id {
+                b"V_MPEG4/ISO/AVC" => "H.264",
+                b"V_MPEGH/ISO/HEVC" => "HEVC (H.265)",
+                b"V_VP9" => "VP9",
+                b"V_VP8" => "VP8",
+                b"V_AV1" => "AV1",
+                b"V_PRORES" => "ProRes",
+                b"V_MPEG4/ISO/ASP" | b"V_MPEG4/ISO/SP" => "MPEG-4 Part 2",
+                b"V_MJPEG" => "Motion JPEG",
+                _ => "other",
+            })
+            .filter(|c| *c != "other");
+        }
+    }
+    // AVI: the video stream header: 'strh', its size, 'vids', the codec's four characters.
+    let at = (8..head.len().saturating_sub(8))
+        .find(|&p| &head[p..p + 4] == b"vids" && &head[p - 8..p - 4] == b"strh")?;
+    let handler = head.get(at + 4..at + 8)?;
+    Some(match &handler.to_ascii_uppercase()[..] {
+        b"H264" | b"X264" | b"AVC1" => "H.264",
+        b"HEVC" | b"H265" | b"HVC1" => "HEVC (H.265)",
+        b"XVID" | b"DIVX" | b"DX50" | b"FMP4" | b"MP4V" => "MPEG-4 Part 2",
+        b"MJPG" => "Motion JPEG",
+        _ => return None,
+    })
 }
 
 /// The colour conversion a stream asks for, or `None` for one the reader does not implement
@@ -188,7 +223,12 @@ fn rotation_of(matrix: [i32; 4]) -> Option<u32> {
 pub(crate) fn plan(path: &Path, head: &[u8]) -> Result<Plan, Refusal> {
     match sniff_container(head) {
         Some("mp4") => {}
-        Some(other) => return Err(Refusal::NeedsFfmpeg(other.to_string())),
+        Some(other) => {
+            return Err(Refusal::NeedsFfmpeg(match sniff_codec(head) {
+                Some(codec) => format!("{codec} video in {other}"),
+                None => other.to_string(),
+            }))
+        }
         None => {
             return Err(Refusal::Error(VideoError::NotVideo {
                 path: path.to_path_buf(),
@@ -527,12 +567,23 @@ mod tests {
         assert_eq!(sniff_container(&mp4), Some("mp4"));
         assert_eq!(
             sniff_container(&[0x1a, 0x45, 0xdf, 0xa3, 1]),
-            Some("a Matroska / WebM video")
+            Some("a Matroska / WebM file")
         );
         assert_eq!(
             sniff_container(b"RIFF\0\0\0\0AVI LIST"),
-            Some("an AVI video")
+            Some("an AVI file")
         );
         assert_eq!(sniff_container(b"hello world"), None);
+    }
+
+    #[test]
+    fn codecs_of_other_containers_are_named() {
+        let mut mkv = vec![0x1a, 0x45, 0xdf, 0xa3, 0, 0, 0x86, 0x85];
+        mkv.extend_from_slice(b"V_VP9");
+        assert_eq!(sniff_codec(&mkv), Some("VP9"));
+        let mut avi = b"RIFF\0\0\0\0AVI LIST\0\0\0\0strh\x38\0\0\0vidsH264".to_vec();
+        avi.extend_from_slice(&[0; 16]);
+        assert_eq!(sniff_codec(&avi), Some("H.264"));
+        assert_eq!(sniff_codec(b"nothing to see"), None);
     }
 }
