@@ -1,7 +1,13 @@
-//! Video output for `gagavatar reenact` / `orbit`: frames in, a finished file out, written by this
-//! crate alone (no ffmpeg or other external tool).
+//! Videos in and out.
 //!
-//! The format follows the output path (see [`VideoFormat::from_path`]):
+//! **Reading** ([`read`]): every command reads videos through [`read::VideoReader`], a streaming
+//! iterator of upright RGB frames with timestamps, plus metadata ([`read::VideoMeta`]). It uses
+//! the `ffmpeg` program when it is on PATH (any codec and container), else the bundled OpenH264
+//! decoder for H.264 Baseline mp4 (what this crate writes), and also takes folders of images and
+//! single images. See the [`read`] module for the rules (start, fps resampling, errors).
+//!
+//! **Writing** (`gagavatar reenact` / `orbit`): frames in, a finished file out, written by this
+//! crate alone (no ffmpeg or other external tool). The format follows the output path (see [`VideoFormat::from_path`]):
 //! - `.mp4`: H.264 Constrained Baseline, yuv420p (BT.601 limited range, signalled in the SPS),
 //!   a keyframe at least every 2 s, `moov` before `mdat` so browsers start playing at once.
 //!   H.264 4:2:0 cannot code odd sizes, so an odd width or height is padded by one pixel that

@@ -120,6 +120,10 @@ fn x264_high_with_b_frames() {
     );
     assert_eq!((meta.width, meta.height, meta.rotation), (160, 120, 0));
     assert!((meta.fps - 25.0).abs() < 1e-9, "fps {}", meta.fps);
+    // A name ffmpeg would take for a protocol ("odd:") is still a file.
+    let odd = path.with_file_name("odd:name.mp4");
+    std::fs::copy(&path, &odd).unwrap();
+    assert_eq!(read_all(&odd, &ReadOptions::default()).1.len(), 40);
 }
 
 #[test]

@@ -136,6 +136,13 @@ fn ratio(v: &Value) -> Option<f64> {
     (a > 0.0 && b > 0.0).then_some(a / b)
 }
 
+/// `file:PATH`: a local file even when its name looks like a protocol (`a:b.mp4`) to ffmpeg.
+fn file_url(path: &Path) -> OsString {
+    let mut url = OsString::from("file:");
+    url.push(path.as_os_str());
+    url
+}
+
 /// The last line of a tool's stderr that says something, without the "PATH: " prefix ffmpeg
 /// puts before file errors.
 fn last_message(stderr: &[u8], path: &Path) -> String {
@@ -147,7 +154,8 @@ fn last_message(stderr: &[u8], path: &Path) -> String {
         .unwrap_or("no message");
     let line = strip_log_prefix(line);
     let p = path.display().to_string();
-    line.strip_prefix(&format!("{p}: "))
+    line.strip_prefix(&format!("file:{p}: "))
+        .or_else(|| line.strip_prefix(&format!("{p}: ")))
         .unwrap_or(line)
         .to_string()
 }
@@ -177,7 +185,7 @@ pub(crate) fn probe(tools: &FfmpegTools, path: &Path) -> Result<Probe, VideoErro
             "-show_format",
         ])
         .arg("-i")
-        .arg(path)
+        .arg(file_url(path))
         .stdin(Stdio::null())
         .output()
         .map_err(|e| VideoError::Ffmpeg {
@@ -281,7 +289,7 @@ pub(crate) fn count_packets(
         .arg(stream_index.to_string())
         .args(["-show_entries", "stream=nb_read_packets", "-of", "csv=p=0"])
         .arg("-i")
-        .arg(path)
+        .arg(file_url(path))
         .stdin(Stdio::null())
         .output()
         .map_err(|e| VideoError::Ffmpeg {
@@ -304,7 +312,8 @@ pub(crate) fn count_packets(
 /// What the stderr thread reports.
 enum Event {
     TimeBase(i64, i64),
-    /// A frame passed `showinfo`: its pts (`None` when it has none).
+    /// A frame passed `showinfo`: its pts (`None` when it has none). (A picture size that
+    /// changes midway needs no care here: ffmpeg scales every frame to the first size.)
     Frame(Option<i64>),
 }
 
@@ -448,7 +457,7 @@ impl FfmpegSource {
                 expected = None;
             }
         }
-        cmd.arg("-copyts").arg("-i").arg(path);
+        cmd.arg("-copyts").arg("-i").arg(file_url(path));
         cmd.arg("-map").arg(format!("0:{}", probe.stream_index));
         cmd.arg("-vf").arg(filters.join(","));
         if tools.version >= (5, 1) {
@@ -725,7 +734,7 @@ mod tests {
     fn showinfo_lines_become_events() {
         let text = "[info] Input #0, mov\n\
 [Parsed_showinfo_0 @ 0x5] [info] config in time_base: 1/12288, frame_rate: 24/1\n\
-[Parsed_showinfo_0 @ 0x5] [info] n:   0 pts:      0 pts_time:0       pos: 48 fmt:yuv420p\n\
+[Parsed_showinfo_0 @ 0x5] [info] n:   0 pts:      0 pts_time:0       pos: 48 fmt:yuv420p sar:0/1 s:834x884 i:P\n\
 [Parsed_showinfo_0 @ 0x5] [info]   side data - User Data Unregistered:\n\
 [Parsed_showinfo_0 @ 0x5] [info] n:   1 pts:    512 pts_time:0.0416667 pos: 9\n\
 [Parsed_showinfo_0 @ 0x5] [info] n:   2 pts:NOPTS pts_time:NOPTS\n\
