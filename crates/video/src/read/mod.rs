@@ -333,6 +333,11 @@ fn check_options(opts: &ReadOptions) -> Result<(), VideoError> {
             )));
         }
     }
+    if opts.max_frames == Some(0) {
+        return Err(VideoError::BadOption(
+            "max frames 0 would read nothing: give at least 1".into(),
+        ));
+    }
     if opts.threads == Some(0) {
         return Err(VideoError::BadOption("threads must be at least 1".into()));
     }
@@ -379,13 +384,15 @@ fn plan(path: &Path, opts: &ReadOptions) -> Result<Plan, VideoError> {
         let probe = ffmpeg::probe(&tools, path)?;
         return Ok(Plan::Ffmpeg(tools, probe));
     }
-    match openh264_reader::plan(path, head) {
-        Ok(p) if opts.decoder != DecoderChoice::Ffmpeg => Ok(Plan::OpenH264(Box::new(p))),
-        Ok(_) => Err(VideoError::NeedsFfmpeg {
+    if opts.decoder == DecoderChoice::Ffmpeg {
+        return Err(VideoError::NeedsFfmpeg {
             path: path.to_path_buf(),
             what: "reading with --decoder ffmpeg".into(),
             why: format!(", which is not on PATH; {}", ffmpeg_install_hint()),
-        }),
+        });
+    }
+    match openh264_reader::plan(path, head) {
+        Ok(p) => Ok(Plan::OpenH264(Box::new(p))),
         Err(openh264_reader::Refusal::Error(e)) => Err(e),
         Err(openh264_reader::Refusal::NeedsFfmpeg(what)) => Err(VideoError::NeedsFfmpeg {
             path: path.to_path_buf(),
@@ -451,17 +458,14 @@ impl VideoReader {
                 (meta, Box::new(src))
             }
             Plan::Ffmpeg(tools, probe) => {
-                if let (Start::Frame(n), Some(total)) = (opts.start, probe.meta.frames) {
-                    if n >= total && total > 0 {
-                        return Err(past_end(path, opts.start, &probe.meta));
-                    }
-                }
+                check_start(path, opts.start, &probe.meta)?;
                 let src =
                     ffmpeg::FfmpegSource::spawn(&tools, path, &probe, opts.start, opts.threads)?;
                 (probe.meta, Box::new(src))
             }
             Plan::OpenH264(p) => {
                 let meta = p.meta.clone();
+                check_start(path, opts.start, &meta)?;
                 let src = openh264_reader::OpenH264Source::new(path, *p, opts.start)?;
                 (meta, Box::new(src))
             }
@@ -631,6 +635,16 @@ impl VideoReader {
         };
         self.emitted += 1;
         Ok(Some(frame))
+    }
+}
+
+/// A frame-index start past a known frame count fails before anything is decoded.
+fn check_start(path: &Path, start: Start, meta: &VideoMeta) -> Result<(), VideoError> {
+    match (start, meta.frames) {
+        (Start::Frame(n), Some(total)) if total > 0 && n >= total => {
+            Err(past_end(path, start, meta))
+        }
+        _ => Ok(()),
     }
 }
 
