@@ -91,7 +91,7 @@ fn clip(name: &str, file: &str, input: Vec<String>, extra: &[&str]) -> PathBuf {
 
 #[test]
 fn x264_high_with_b_frames() {
-    if !ffmpeg_or_skip("x264_high_with_b_frames") || !has_encoder("libx264") {
+    if !ffmpeg_with("x264_high_with_b_frames", &["libx264"]) {
         return;
     }
     // The kind of clip the built-in decoder stopped on after 8-9 frames.
@@ -128,7 +128,7 @@ fn x264_high_with_b_frames() {
 
 #[test]
 fn x264_high_10_bit() {
-    if !ffmpeg_or_skip("x264_high_10_bit") || !has_encoder("libx264") {
+    if !ffmpeg_with("x264_high_10_bit", &["libx264"]) {
         return;
     }
     let path = clip(
@@ -144,11 +144,7 @@ fn x264_high_10_bit() {
 
 #[test]
 fn hevc() {
-    if !ffmpeg_or_skip("hevc") {
-        return;
-    }
-    if !has_encoder("libx265") {
-        eprintln!("SKIPPED hevc: this ffmpeg has no libx265 encoder");
+    if !ffmpeg_with("hevc", &["libx265"]) {
         return;
     }
     let path = clip(
@@ -170,11 +166,7 @@ fn hevc() {
 
 #[test]
 fn vp9_webm() {
-    if !ffmpeg_or_skip("vp9_webm") {
-        return;
-    }
-    if !has_encoder("libvpx-vp9") {
-        eprintln!("SKIPPED vp9_webm: this ffmpeg has no libvpx-vp9 encoder");
+    if !ffmpeg_with("vp9_webm", &["libvpx-vp9"]) {
         return;
     }
     let path = clip(
@@ -247,7 +239,7 @@ fn prores_mov_and_mpeg4_avi() {
 
 #[test]
 fn rotated_phone_mov_comes_out_upright() {
-    if !ffmpeg_or_skip("rotated_phone_mov_comes_out_upright") || !has_encoder("libx264") {
+    if !ffmpeg_with("rotated_phone_mov_comes_out_upright", &["libx264"]) {
         return;
     }
     let dir = scratch("read-rotated");
@@ -279,9 +271,10 @@ fn rotated_phone_mov_comes_out_upright() {
 
 #[test]
 fn variable_frame_rate_keeps_every_frame_at_its_time() {
-    if !ffmpeg_or_skip("variable_frame_rate_keeps_every_frame_at_its_time")
-        || !has_encoder("libx264")
-    {
+    if !ffmpeg_with(
+        "variable_frame_rate_keeps_every_frame_at_its_time",
+        &["libx264"],
+    ) {
         return;
     }
     // 30 fps for a third of a second, then every third frame (10 fps).
@@ -333,7 +326,7 @@ fn variable_frame_rate_keeps_every_frame_at_its_time() {
 
 #[test]
 fn start_and_max_frames_select_the_same_frames() {
-    if !ffmpeg_or_skip("start_and_max_frames_select_the_same_frames") || !has_encoder("libx264") {
+    if !ffmpeg_with("start_and_max_frames_select_the_same_frames", &["libx264"]) {
         return;
     }
     let path = clip(
@@ -415,7 +408,7 @@ fn dropping_a_reader_stops_ffmpeg() {
 
 #[test]
 fn our_own_mp4_reads_the_same_with_both_decoders() {
-    if !ffmpeg_or_skip("our_own_mp4_reads_the_same_with_both_decoders") {
+    if !ffmpeg_with("our_own_mp4_reads_the_same_with_both_decoders", &[]) {
         return;
     }
     let dir = scratch("read-own");
@@ -455,9 +448,10 @@ fn our_own_mp4_reads_the_same_with_both_decoders() {
 
 #[test]
 fn third_party_baseline_reads_with_openh264_including_cropping() {
-    if !ffmpeg_or_skip("third_party_baseline_reads_with_openh264_including_cropping")
-        || !has_encoder("libx264")
-    {
+    if !ffmpeg_with(
+        "third_party_baseline_reads_with_openh264_including_cropping",
+        &["libx264"],
+    ) {
         return;
     }
     // 98x74 is coded as 112x80 macroblocks and cropped: the decoder must crop.
@@ -514,9 +508,10 @@ fn third_party_baseline_reads_with_openh264_including_cropping() {
 
 #[test]
 fn openh264_refuses_what_it_cannot_decode_before_decoding() {
-    if !ffmpeg_or_skip("openh264_refuses_what_it_cannot_decode_before_decoding")
-        || !has_encoder("libx264")
-    {
+    if !ffmpeg_with(
+        "openh264_refuses_what_it_cannot_decode_before_decoding",
+        &["libx264", "libvpx-vp9"],
+    ) {
         return;
     }
     let dir = scratch("read-refuse");
@@ -581,7 +576,7 @@ fn openh264_refuses_what_it_cannot_decode_before_decoding() {
 
 #[test]
 fn bad_inputs_are_one_clear_error() {
-    if !ffmpeg_or_skip("bad_inputs_are_one_clear_error") || !has_encoder("libx264") {
+    if !ffmpeg_with("bad_inputs_are_one_clear_error", &["libx264"]) {
         return;
     }
     let dir = scratch("read-bad");

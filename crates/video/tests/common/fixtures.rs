@@ -50,6 +50,20 @@ pub fn has_encoder(name: &str) -> bool {
         .any(|l| l.split_whitespace().nth(1) == Some(name))
 }
 
+/// Whether this ffmpeg can encode with `name`; prints why `test` is skipped when not.
+pub fn encoder_or_skip(test: &str, name: &str) -> bool {
+    if has_encoder(name) {
+        return true;
+    }
+    eprintln!("SKIPPED {test}: this ffmpeg build has no {name} encoder");
+    false
+}
+
+/// ffmpeg with every one of `encoders`, or a printed reason to skip `test`.
+pub fn ffmpeg_with(test: &str, encoders: &[&str]) -> bool {
+    ffmpeg_or_skip(test) && encoders.iter().all(|e| encoder_or_skip(test, e))
+}
+
 /// The first of `names` this ffmpeg can encode with.
 pub fn first_encoder<'a>(names: &[&'a str]) -> Option<&'a str> {
     names.iter().copied().find(|n| has_encoder(n))
