@@ -5,21 +5,23 @@
 //!   resized to 512 x 512 with antialiased bilinear (PyTorch's weights, `gagavatar_ops`).
 //! * Head box: the release detects it with VGGHead (head with hair, larger than a face box); we
 //!   estimate it from face landmarks, calibrated so our crops are framed like the release's
-//!   training crops. Spec table (MediaPipe on the 40 release crops of the VFHQ demo LMDB, in 512
-//!   crop pixels, medians): iris midpoint (255.6, 199.0), 468-point mesh height 277.2, inter-iris
-//!   distance 92.6. So [`FramingCalibration::default`] puts the eye centre at
-//!   (255.6, 199.0) / 512 of the crop and makes the mesh's height (measured along the face's up
-//!   axis, perpendicular to the eye line, so a tilted head is framed like an upright one) 277.2 /
-//!   512 of the crop side; the window is centred accordingly, rotated with the eye line.
-//!   These constants come from the spec table; [`FramingCalibration::measure`] recomputes them
-//!   from landmarks detected on any set of release crops (e.g. `/work/demos/vfhq_demo/data.mdb`
-//!   once the face crate runs), and [`framing_stats`] measures a single crop.
+//!   training crops. Measured (`tools/reference/framing_measure.py`: MediaPipe 0.10.21 with
+//!   irises on the 40 release crops of the VFHQ demo LMDB, medians, 512-crop pixels): iris
+//!   midpoint (255.56, 199.03), axis-aligned mesh height 277.2 and inter-iris distance 92.6 (the
+//!   spec's table, reproduced), and in the face's own frame (turned with the iris line, so a
+//!   tilted head is framed like an upright one, which is how the head box is placed here): iris
+//!   midpoint (259.94, 200.04) and mesh height along the up axis 273.64.
+//!   [`FramingCalibration::default`] holds those face-frame numbers; the window is centred so
+//!   the eyes land there, with a side that makes the mesh that tall.
+//!   [`FramingCalibration::measure`] recomputes them from landmarks detected on any set of
+//!   release crops (e.g. with the project's own face crate), [`framing_stats`] for one crop.
 //! * Video: the head boxes are smoothed two-sided over the whole clip (Whittaker on the centre
 //!   and the log side; the release uses a causal EMA with 0.03, which lags a moving head), so the
 //!   crop window is nearly static but follows the head without delay.
 
 use gagavatar_ops::resample::{ResizeMode, Taps};
 use image::RgbImage;
+use rayon::prelude::*;
 
 use crate::error::{input, Result};
 use crate::observation::FaceLandmarks;
@@ -145,6 +147,9 @@ impl CropWindow {
 pub struct FramingStats {
     /// Eye centre (iris midpoint, or eye-corner midpoint without irises), crop pixels.
     pub eye_centre: [f64; 2],
+    /// The eye centre in the face's frame: its offset from the crop centre turned by minus the
+    /// eye line's angle, plus the centre (equals `eye_centre` for an upright face).
+    pub eye_centre_face: [f64; 2],
     /// Height of the 468-point mesh along the face's up axis, crop pixels.
     pub face_height: f64,
     /// Inter-iris (or inter-eye-centre) distance, crop pixels.
@@ -183,36 +188,44 @@ fn face_geometry(lm: &FaceLandmarks) -> ([[f64; 2]; 2], [f64; 2], f64) {
     (eyes, dir, hi - lo)
 }
 
-/// The framing statistics of landmarks detected on a 512 crop.
-pub fn framing_stats(lm: &FaceLandmarks) -> FramingStats {
-    let (eyes, _, height) = face_geometry(lm);
+/// The framing statistics of landmarks detected on a crop of side `crop_side` pixels.
+pub fn framing_stats(lm: &FaceLandmarks, crop_side: f64) -> FramingStats {
+    let (eyes, dir, height) = face_geometry(lm);
     let dx = eyes[1][0] - eyes[0][0];
     let dy = eyes[1][1] - eyes[0][1];
+    let eye = [
+        (eyes[0][0] + eyes[1][0]) / 2.0,
+        (eyes[0][1] + eyes[1][1]) / 2.0,
+    ];
+    let h = crop_side / 2.0;
+    let c = [eye[0] - h, eye[1] - h];
+    let down = [-dir[1], dir[0]];
     FramingStats {
-        eye_centre: [
-            (eyes[0][0] + eyes[1][0]) / 2.0,
-            (eyes[0][1] + eyes[1][1]) / 2.0,
+        eye_centre: eye,
+        eye_centre_face: [
+            c[0] * dir[0] + c[1] * dir[1] + h,
+            c[0] * down[0] + c[1] * down[1] + h,
         ],
         face_height: height,
         eye_distance: (dx * dx + dy * dy).sqrt(),
     }
 }
 
-/// Where the face sits in a crop, as fractions of the crop side.
+/// Where the face sits in a crop, as fractions of the crop side, in the face's frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FramingCalibration {
-    /// Eye centre in the crop, `[x, y]` / crop side.
+    /// Eye centre in the crop, `[x, y]` / crop side (face frame, see [`FramingStats`]).
     pub eye_centre: [f64; 2],
     /// Mesh height along the face's up axis / crop side.
     pub face_height: f64,
 }
 
 impl Default for FramingCalibration {
-    /// From the spec's table (release VFHQ crops, MediaPipe refine=True, medians).
+    /// Measured on the release's VFHQ demo crops (see the module notes).
     fn default() -> Self {
         Self {
-            eye_centre: [255.6 / 512.0, 199.0 / 512.0],
-            face_height: 277.2 / 512.0,
+            eye_centre: [259.94 / 512.0, 200.04 / 512.0],
+            face_height: 273.64 / 512.0,
         }
     }
 }
@@ -237,9 +250,9 @@ impl FramingCalibration {
                 format!("{} crops of side {crop_side}", crops.len()),
             ));
         }
-        let stats: Vec<FramingStats> = crops.iter().map(framing_stats).collect();
-        let mut xs: Vec<f64> = stats.iter().map(|s| s.eye_centre[0]).collect();
-        let mut ys: Vec<f64> = stats.iter().map(|s| s.eye_centre[1]).collect();
+        let stats: Vec<FramingStats> = crops.iter().map(|c| framing_stats(c, crop_side)).collect();
+        let mut xs: Vec<f64> = stats.iter().map(|s| s.eye_centre_face[0]).collect();
+        let mut ys: Vec<f64> = stats.iter().map(|s| s.eye_centre_face[1]).collect();
         let mut hs: Vec<f64> = stats.iter().map(|s| s.face_height).collect();
         Ok(Self {
             eye_centre: [median(&mut xs) / crop_side, median(&mut ys) / crop_side],
@@ -343,55 +356,60 @@ pub fn crop_image(img: &RgbImage, window: &CropWindow) -> Result<RgbImage> {
     let ty = Taps::new(wh as usize, out, ResizeMode::Antialias);
     let (iw, ih) = (img.width() as i64, img.height() as i64);
     let src = img.as_raw();
-    // Vertical pass: for each output row, the window's columns (in f32), zero outside.
+    let (wx, wy): (Vec<f32>, Vec<f32>) = (
+        tx.w.iter().map(|&w| w as f32).collect(),
+        ty.w.iter().map(|&w| w as f32).collect(),
+    );
+    // Vertical pass: for each output row, the window's columns (in f32), zero outside. Rows
+    // are independent, so both passes run in parallel over output rows.
     let cols = ww as usize;
     let mut mid = vec![0f32; out * cols * 3];
-    for o in 0..out {
-        let row = &mut mid[o * cols * 3..(o + 1) * cols * 3];
-        for t in 0..ty.n {
-            let wgt = ty.w[o * ty.n + t] as f32;
-            if wgt == 0.0 {
-                continue;
-            }
-            let y = window.y0 + (ty.start[o] + t) as i64;
-            if y < 0 || y >= ih {
-                continue;
-            }
+    let (xa, xb) = (window.x0.max(0), window.x1.min(iw));
+    mid.par_chunks_mut(cols * 3)
+        .enumerate()
+        .for_each(|(o, row)| {
             // Only the part of the window's row that lies inside the frame contributes.
-            let xa = window.x0.max(0);
-            let xb = window.x1.min(iw);
             if xa >= xb {
-                continue;
+                return;
             }
-            let line = &src[(y * iw + xa) as usize * 3..(y * iw + xb) as usize * 3];
-            let dst = &mut row[(xa - window.x0) as usize * 3..(xb - window.x0) as usize * 3];
-            for (d, &s) in dst.iter_mut().zip(line) {
-                *d += wgt * s as f32;
-            }
-        }
-    }
-    // Horizontal pass.
-    let mut res = RgbImage::new(CROP_PX, CROP_PX);
-    let dst = res.as_mut();
-    for o in 0..out {
-        let row = &mid[o * cols * 3..(o + 1) * cols * 3];
-        for p in 0..out {
-            let mut acc = [0f32; 3];
-            for t in 0..tx.n {
-                let wgt = tx.w[p * tx.n + t] as f32;
+            for t in 0..ty.n {
+                let wgt = wy[o * ty.n + t];
                 if wgt == 0.0 {
                     continue;
                 }
-                let x = (tx.start[p] + t) * 3;
-                for c in 0..3 {
-                    acc[c] += wgt * row[x + c];
+                let y = window.y0 + (ty.start[o] + t) as i64;
+                if y < 0 || y >= ih {
+                    continue;
+                }
+                let line = &src[(y * iw + xa) as usize * 3..(y * iw + xb) as usize * 3];
+                let dst = &mut row[(xa - window.x0) as usize * 3..(xb - window.x0) as usize * 3];
+                for (d, &s) in dst.iter_mut().zip(line) {
+                    *d += wgt * s as f32;
                 }
             }
-            for c in 0..3 {
-                dst[(o * out + p) * 3 + c] = acc[c].round().clamp(0.0, 255.0) as u8;
+        });
+    // Horizontal pass.
+    let mut res = RgbImage::new(CROP_PX, CROP_PX);
+    res.as_mut()
+        .par_chunks_mut(out * 3)
+        .enumerate()
+        .for_each(|(o, dst)| {
+            let row = &mid[o * cols * 3..(o + 1) * cols * 3];
+            for (p, px) in dst.chunks_exact_mut(3).enumerate() {
+                let mut acc = [0f32; 3];
+                let taps = &wx[p * tx.n..(p + 1) * tx.n];
+                let base = tx.start[p] * 3;
+                for (t, &w) in taps.iter().enumerate() {
+                    let x = base + t * 3;
+                    acc[0] += w * row[x];
+                    acc[1] += w * row[x + 1];
+                    acc[2] += w * row[x + 2];
+                }
+                for c in 0..3 {
+                    px[c] = acc[c].round().clamp(0.0, 255.0) as u8;
+                }
             }
-        }
-    }
+        });
     Ok(res)
 }
 

@@ -6,6 +6,7 @@
 //! themselves are cropped separately ([`crate::crop::crop_image`] with each frame's window), so
 //! a caller can decode a video twice instead of holding it in memory.
 
+use gagavatar_data::records::{EXPRESSION_COMPONENTS, SHAPE_COMPONENTS};
 use gagavatar_flame::TrackedFrame;
 
 use crate::crop::{smooth_head_boxes, CropWindow, FramingCalibration, HeadBox};
@@ -77,11 +78,19 @@ pub struct TrackedVideo {
     pub keyframes: Vec<usize>,
 }
 
-/// The release record of a fitted state (global pose zero, jaw in `posecode[3..6]`).
+/// The release record of a fitted state (global pose zero, jaw in `posecode[3..6]`), codes
+/// zero-padded to the release's 300 / 100 components.
 pub fn record_of(shape: &[f64], s: &FrameState, bbox: [f64; 4]) -> TrackedFrame {
+    let pad = |v: &[f64], n: usize| {
+        let mut v = v.to_vec();
+        if v.len() < n {
+            v.resize(n, 0.0);
+        }
+        v
+    };
     TrackedFrame {
-        shapecode: shape.to_vec(),
-        expcode: s.expression.clone(),
+        shapecode: pad(shape, SHAPE_COMPONENTS),
+        expcode: pad(&s.expression, EXPRESSION_COMPONENTS),
         posecode: vec![0.0, 0.0, 0.0, s.jaw[0], s.jaw[1], s.jaw[2]],
         eyecode: s.eyes.to_vec(),
         transform_matrix: Some(s.camera.matrix()),

@@ -50,7 +50,7 @@ fn exact_landmarks_give_the_camera_when_the_identity_is_known() {
     let rig = rig();
     let o = exact_options();
     let mut rng = Rng::stream(1, &[0]);
-    let (mut rots, mut trans, mut reps) = (vec![], vec![], vec![]);
+    let (mut rots, mut trans, mut reps, mut gaze) = (vec![], vec![], vec![], vec![]);
     for id in 0..16 {
         let (shape, st) = truth(&rig, id, 1);
         let pts = exact_points(&rig, &shape, &st);
@@ -67,15 +67,22 @@ fn exact_landmarks_give_the_camera_when_the_identity_is_known() {
         rots.push(r);
         trans.push(tr);
         reps.push(e);
+        // Gaze (pitch, yaw of both eyes; the synthetic eyes look the same way).
+        for i in [0, 1, 3, 4] {
+            gaze.push((fit.state.eyes[i] - st.eyes[i]).abs().to_degrees());
+        }
     }
     println!(
         "known identity, exact landmarks, 16 frames: rotation median {:.3} max {:.3} deg; \
-         translation median {:.3} max {:.3} %; reprojection max {:.3} px",
+         translation median {:.3} max {:.3} %; reprojection max {:.3} px; gaze angles median \
+         {:.2} max {:.2} deg off",
         median(&rots),
         max(&rots),
         median(&trans),
         max(&trans),
-        max(&reps)
+        max(&reps),
+        median(&gaze),
+        max(&gaze)
     );
     assert!(
         median(&rots) <= ROT_MEDIAN_TOL_DEG,

@@ -129,3 +129,45 @@ impl Drop for TempDir {
         let _ = std::fs::remove_dir_all(&self.0);
     }
 }
+
+/// A MediaPipe-like observation whose mapped points are `pts70` (frame pixels): the 68 iBUG
+/// indices and the iris centres hold the given points, every other mesh point the centroid of
+/// the 68 (so the mesh extent is the landmarks' extent).
+pub fn observation(
+    pts70: &[[f64; 2]; N_LANDMARKS],
+    width: u32,
+    height: u32,
+) -> gagavatar_track::Observation {
+    use gagavatar_track::mapping::{MEDIAPIPE_IRIS_CENTRES, MEDIAPIPE_TO_IBUG68};
+    let c = [
+        pts70[..68].iter().map(|p| p[0]).sum::<f64>() / 68.0,
+        pts70[..68].iter().map(|p| p[1]).sum::<f64>() / 68.0,
+    ];
+    let mut pts = vec![c; 478];
+    for (k, &i) in MEDIAPIPE_TO_IBUG68.iter().enumerate() {
+        pts[i] = pts70[k];
+    }
+    for (e, &i) in MEDIAPIPE_IRIS_CENTRES.iter().enumerate() {
+        for j in i..i + 5 {
+            pts[j] = pts70[68 + e];
+        }
+    }
+    let lm = gagavatar_track::FaceLandmarks::new(pts).unwrap();
+    gagavatar_track::Observation::new(width, height, Some(lm)).unwrap()
+}
+
+/// Mean over frames and landmarks of |p[t-1] - 2 p[t] + p[t+1]| (pixels): frame-to-frame
+/// jitter, the steadiness measure of the brief.
+pub fn mean_second_difference(seq: &[Vec<[f64; 2]>]) -> f64 {
+    let mut sum = 0.0;
+    let mut n = 0;
+    for t in 1..seq.len().saturating_sub(1) {
+        for k in 0..seq[t].len() {
+            let d: [f64; 2] =
+                std::array::from_fn(|c| seq[t - 1][k][c] - 2.0 * seq[t][k][c] + seq[t + 1][k][c]);
+            sum += (d[0] * d[0] + d[1] * d[1]).sqrt();
+            n += 1;
+        }
+    }
+    sum / n.max(1) as f64
+}
