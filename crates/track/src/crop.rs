@@ -87,6 +87,14 @@ impl CropWindow {
     pub fn from_head_box(b: &HeadBox) -> Result<Self> {
         let c = b.centre();
         let half = CROP_SCALE * b.mean_side() / 2.0;
+        // Far beyond any image; keeps the integer corners and their differences exact.
+        const LIMIT: f64 = 1e9;
+        if !(c[0].abs() + half <= LIMIT && c[1].abs() + half <= LIMIT) {
+            return Err(input(
+                "crop window",
+                format!("head box {b:?} lies too far out (beyond {LIMIT} pixels)"),
+            ));
+        }
         // Python's `.long()` truncates toward zero; `as` does too (and saturates).
         let w = Self {
             x0: (c[0] - half) as i64,
@@ -104,11 +112,11 @@ impl CropWindow {
     }
 
     pub fn width(&self) -> i64 {
-        self.x1 - self.x0
+        self.x1.saturating_sub(self.x0)
     }
 
     pub fn height(&self) -> i64 {
-        self.y1 - self.y0
+        self.y1.saturating_sub(self.y0)
     }
 
     pub fn as_array(&self) -> [i64; 4] {
@@ -414,7 +422,8 @@ pub fn crop_image(img: &RgbImage, window: &CropWindow) -> Result<RgbImage> {
 }
 
 /// The release's matte composite on black: `img / 255 * alpha * 255`, truncated to 8 bits (as
-/// its `.to(torch.uint8)`). `alpha` is row-major, one value in [0, 1] per pixel.
+/// its `.to(torch.uint8)`). `alpha` is row-major, one value per pixel, clamped to [0, 1] (a
+/// network's soft matte may overshoot by rounding); non-finite values are an error.
 pub fn apply_matte(crop: &RgbImage, alpha: &[f32]) -> Result<RgbImage> {
     let n = (crop.width() * crop.height()) as usize;
     if alpha.len() != n {
@@ -428,17 +437,12 @@ pub fn apply_matte(crop: &RgbImage, alpha: &[f32]) -> Result<RgbImage> {
             ),
         ));
     }
-    if let Some(i) = alpha
-        .iter()
-        .position(|a| !(a.is_finite() && (0.0..=1.0).contains(a)))
-    {
-        return Err(input(
-            "matte",
-            format!("value {i} is {} (must be in [0, 1])", alpha[i]),
-        ));
+    if let Some(i) = alpha.iter().position(|a| !a.is_finite()) {
+        return Err(input("matte", format!("value {i} is {}", alpha[i])));
     }
     let mut out = crop.clone();
     for (px, &a) in out.as_mut().chunks_exact_mut(3).zip(alpha) {
+        let a = a.clamp(0.0, 1.0);
         for c in px {
             *c = ((*c as f32 / 255.0 * a) * 255.0).clamp(0.0, 255.0) as u8;
         }

@@ -987,12 +987,20 @@ pub fn fit_photo(rig: &LandmarkRig, t: &LandmarkTargets, o: &FitOptions) -> Resu
     o.validate()?;
     let zero = vec![0.0; rig.n_shape];
     let start = fit_frame_from_scratch(rig, &zero, t, o, o.frame_iterations)?;
-    let (shape, states) = fit_shared_shape(rig, &[t], &zero, &[start.state], o)?;
-    let [state]: [FrameState; 1] = states.try_into().map_err(|_| TrackError::Numerical {
-        stage: "photo fit",
-        reason: "lost the frame".into(),
-    })?;
-    let frame = finish(rig, t, o, &shape, state, 0)?;
+    let mut shape = zero;
+    let mut states = [start.state];
+    let n = lm(
+        rig,
+        &[t],
+        o,
+        &mut shape,
+        &mut states,
+        true,
+        true,
+        o.photo_iterations,
+    )?;
+    let [state] = states;
+    let frame = finish(rig, t, o, &shape, state, start.iterations + n)?;
     Ok(PhotoFit { shape, frame })
 }
 

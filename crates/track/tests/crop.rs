@@ -22,6 +22,16 @@ fn window_follows_the_release_rule() {
     let b = HeadBox::square([10.0, 10.0], 100.0).unwrap();
     let w = CropWindow::from_head_box(&b).unwrap();
     assert_eq!(w.as_array(), [-72, -72, 92, 92]);
+    // Absurd boxes (landmarks at 1e12) are refused, not overflowed.
+    let far = HeadBox::square([1e12, 0.0], 10.0).unwrap();
+    assert!(CropWindow::from_head_box(&far).is_err());
+    let huge = CropWindow {
+        x0: i64::MIN,
+        y0: 0,
+        x1: i64::MAX,
+        y1: 10,
+    };
+    assert!(crop_image(&RgbImage::new(4, 4), &huge).is_err());
     // Frame <-> crop pixels: the window's edges map onto the crop's.
     let p = w.frame_to_crop([-72.0, 92.0]);
     assert!(p[0].abs() < 1e-12 && (p[1] - 512.0).abs() < 1e-12);
@@ -133,7 +143,11 @@ fn matte_composites_on_black_with_truncation() {
     assert_eq!(out.get_pixel(1, 1).0, [63, 25, 1]);
     assert!(apply_matte(&img, &[1.0; 3]).is_err());
     assert!(apply_matte(&img, &[1.0, f32::NAN, 0.0, 0.0]).is_err());
-    assert!(apply_matte(&img, &[1.0, 1.5, 0.0, 0.0]).is_err());
+    assert!(apply_matte(&img, &[1.0, f32::INFINITY, 0.0, 0.0]).is_err());
+    // Overshoots of a soft matte are clamped.
+    let c = apply_matte(&img, &[1.5, -0.2, 0.5, 0.25]).unwrap();
+    assert_eq!(c.get_pixel(0, 0).0, [255, 100, 3]);
+    assert_eq!(c.get_pixel(1, 0).0, [0, 0, 0]);
 }
 
 /// A plausible 478-point face: an elliptic mesh of given height around `centre`, turned by

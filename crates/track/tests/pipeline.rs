@@ -28,7 +28,7 @@ fn sequence(rig: &LandmarkRig, n: usize) -> (Vec<f64>, Vec<FrameState>) {
     let shape = sample_shape(&SampleConfig::default(), SEED, 7, rig.n_shape);
     let mut rng = Rng::stream(9, &[0]);
     let phases: Vec<(f64, f64)> = (0..10)
-        .map(|_| (rng.range(0.1, 0.5), rng.range(0.0, 6.28)))
+        .map(|_| (rng.range(0.1, 0.5), rng.range(0.0, std::f64::consts::TAU)))
         .collect();
     let states = (0..n)
         .map(|f| {

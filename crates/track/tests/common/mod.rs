@@ -148,9 +148,7 @@ pub fn observation(
         pts[i] = pts70[k];
     }
     for (e, &i) in MEDIAPIPE_IRIS_CENTRES.iter().enumerate() {
-        for j in i..i + 5 {
-            pts[j] = pts70[68 + e];
-        }
+        pts[i..i + 5].fill(pts70[68 + e]);
     }
     let lm = gagavatar_track::FaceLandmarks::new(pts).unwrap();
     gagavatar_track::Observation::new(width, height, Some(lm)).unwrap()
@@ -162,9 +160,8 @@ pub fn mean_second_difference(seq: &[Vec<[f64; 2]>]) -> f64 {
     let mut sum = 0.0;
     let mut n = 0;
     for t in 1..seq.len().saturating_sub(1) {
-        for k in 0..seq[t].len() {
-            let d: [f64; 2] =
-                std::array::from_fn(|c| seq[t - 1][k][c] - 2.0 * seq[t][k][c] + seq[t + 1][k][c]);
+        for ((a, b), c) in seq[t - 1].iter().zip(&seq[t]).zip(&seq[t + 1]) {
+            let d: [f64; 2] = std::array::from_fn(|i| a[i] - 2.0 * b[i] + c[i]);
             sum += (d[0] * d[0] + d[1] * d[1]).sqrt();
             n += 1;
         }
