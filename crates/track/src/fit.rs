@@ -901,6 +901,7 @@ pub fn fit_frame(
     let Some(init) = init else {
         return fit_frame_from_scratch(rig, shape, t, o, o.photo_iterations);
     };
+    check_state(rig, init)?;
     let mut states = [init.clone()];
     let mut sh = shape.to_vec();
     let warm = match lm(
@@ -931,6 +932,24 @@ pub fn fit_frame(
             })
         }
     }
+}
+
+fn check_state(rig: &LandmarkRig, s: &FrameState) -> Result<()> {
+    let finite = s.expression.iter().all(|x| x.is_finite())
+        && s.jaw.iter().chain(&s.eyes).all(|x| x.is_finite())
+        && s.camera.rotation.iter().flatten().all(|x| x.is_finite())
+        && s.camera.translation.iter().all(|x| x.is_finite());
+    if s.expression.len() != rig.n_exp || !finite {
+        return Err(input(
+            "start state",
+            format!(
+                "{} expression values (the rig takes {}), finite: {finite}",
+                s.expression.len(),
+                rig.n_exp
+            ),
+        ));
+    }
+    Ok(())
 }
 
 fn check_shape(rig: &LandmarkRig, shape: &[f64]) -> Result<()> {
@@ -966,6 +985,9 @@ pub fn fit_shared_shape(
                 states.len()
             ),
         ));
+    }
+    for s in states {
+        check_state(rig, s)?;
     }
     let mut sh = shape.to_vec();
     let mut st = states.to_vec();

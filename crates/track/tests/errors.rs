@@ -121,6 +121,12 @@ fn targets_and_options_are_validated() {
     nan_shape[0] = f64::NAN;
     assert!(fit_frame(&rig, &nan_shape, &t, None, &o).is_err());
     let s0 = FrameState::neutral(&rig, CameraPose::frontal(9.0));
+    let mut bad = s0.clone();
+    bad.jaw[1] = f64::NAN;
+    assert!(msg(fit_frame(&rig, &shape, &t, Some(&bad), &o)).contains("start state"));
+    bad = s0.clone();
+    bad.expression.pop();
+    assert!(fit_shared_shape(&rig, &[&t], &shape, &[bad], &o).is_err());
     assert!(fit_shared_shape(&rig, &[&t], &shape, &[s0.clone(), s0.clone()], &o).is_err());
     assert!(fit_shared_shape(&rig, &[], &shape, &[], &o).is_err());
     assert!(smooth_states(&[s0], &[true, false], &Smoothing::default()).is_err());
