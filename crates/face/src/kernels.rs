@@ -1,0 +1,751 @@
+//! The CPU kernels of the face networks: NHWC f32, channels in 16-lane blocks ([`crate::simd`]).
+//!
+//! The networks are MobileNet-like: 1x1 convolutions (a matrix product over pixels, the bulk of
+//! the arithmetic), 3x3/5x5 depthwise convolutions, a few small full convolutions, pooling and
+//! resampling. Each kernel fuses what TFLite runs as separate ops around it (bias, the residual
+//! add with its zero channel padding, the activation), so a BlazeBlock is two passes over memory
+//! instead of five. Large ops split their output rows over the rayon pool; small ones (most ops
+//! of the attention branches work on 16x16 maps or smaller) run on the calling thread, since a
+//! fork costs more than their arithmetic.
+
+use crate::simd::{dispatch, Lanes, W};
+use crate::tensor::Nhwc;
+use rayon::prelude::*;
+
+/// Multiply-adds above which an op splits its rows over threads.
+const PARALLEL_MACS: usize = 400_000;
+
+/// The activation applied after bias (and residual): TFLite's separate RELU / PRELU /
+/// HARD_SWISH ops, fused.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Act {
+    None,
+    Relu,
+    /// Per-channel slopes for negative inputs, zero-padded to whole 16-lane blocks.
+    PRelu(Vec<f32>),
+    /// `x * min(max(x + 3, 0), 6) / 6`.
+    HardSwish,
+}
+
+impl Act {
+    /// PReLU with slopes `alpha` (one per channel).
+    pub fn prelu(alpha: &[f32]) -> Act {
+        let mut a = alpha.to_vec();
+        a.resize(alpha.len().div_ceil(W) * W, 0.0);
+        Act::PRelu(a)
+    }
+
+    /// Applies the activation to the 16 channels starting at `ch` (a multiple of 16).
+    #[inline(always)]
+    fn apply<L: Lanes>(&self, v: L, ch: usize) -> L {
+        match self {
+            Act::None => v,
+            Act::Relu => v.max(L::zero()),
+            Act::PRelu(a) => {
+                // SAFETY: `a` is padded to whole blocks and `ch` is a block start inside it.
+                let s = unsafe { L::load(a.as_ptr().add(ch)) };
+                let z = L::zero();
+                v.min(z).fma(s, v.max(z))
+            }
+            Act::HardSwish => {
+                let r6 = v.add(L::splat(3.0)).max(L::zero()).min(L::splat(6.0));
+                v.mul(r6).mul(L::splat(1.0 / 6.0))
+            }
+        }
+    }
+
+    /// The activation of one value of channel `ch` (scalar ops).
+    pub fn apply_scalar(&self, v: f32, ch: usize) -> f32 {
+        match self {
+            Act::None => v,
+            Act::Relu => v.max(0.0),
+            Act::PRelu(a) => v.max(0.0) + a[ch] * v.min(0.0),
+            Act::HardSwish => v * (v + 3.0).clamp(0.0, 6.0) / 6.0,
+        }
+    }
+}
+
+/// Runs `f(first_row, rows_slice)` over row bands of `out` (rows of `row_len` values), in
+/// parallel when the op is big enough to pay for it.
+fn for_rows(
+    out: &mut [f32],
+    rows: usize,
+    row_len: usize,
+    macs: usize,
+    f: impl Fn(usize, &mut [f32]) + Sync,
+) {
+    let threads = rayon::current_num_threads();
+    if threads <= 1 || macs < PARALLEL_MACS || rows < 2 || row_len == 0 {
+        f(0, out);
+        return;
+    }
+    let parts = threads.min(rows);
+    let per = rows.div_ceil(parts);
+    out.par_chunks_mut(per * row_len)
+        .enumerate()
+        .for_each(|(i, chunk)| f(i * per, chunk));
+}
+
+// ---------------------------------------------------------------------------------------------
+// Matrix product with fused epilogue: 1x1 convolutions and im2col'd full convolutions.
+
+/// Weights of a convolution as the matrix-product kernel reads them: the reduction axis `k`
+/// (input channels, or kh*kw*cin for a full convolution) by the output channels, the output
+/// channels cut into 16-lane blocks and the blocks into groups of `nb` that one pass computes.
+#[derive(Debug, Clone)]
+pub struct Packed {
+    pub k: usize,
+    pub cout: usize,
+    /// Blocks per group (1 to 4).
+    pub nb: usize,
+    pub groups: usize,
+    /// `[groups][k][nb * 16]`, zeros past `cout`.
+    pub w: Vec<f32>,
+    /// `[groups * nb * 16]`, zeros past `cout`.
+    pub bias: Vec<f32>,
+}
+
+impl Packed {
+    /// Packs `w` given as `[cout][k]` (TFLite's OHWI kernel flattened) and `bias` `[cout]`.
+    pub fn new(w: &[f32], bias: &[f32], cout: usize, k: usize) -> Packed {
+        assert_eq!(w.len(), cout * k, "kernel size");
+        assert_eq!(bias.len(), cout, "bias size");
+        let blocks = cout.div_ceil(W);
+        let nb = blocks.clamp(1, 4);
+        let groups = blocks.div_ceil(nb);
+        let gw = nb * W;
+        let mut pw = vec![0.0f32; groups * k * gw];
+        for o in 0..cout {
+            let (g, j) = (o / gw, o % gw);
+            for kk in 0..k {
+                pw[(g * k + kk) * gw + j] = w[o * k + kk];
+            }
+        }
+        let mut pb = vec![0.0f32; groups * gw];
+        pb[..cout].copy_from_slice(bias);
+        Packed {
+            k,
+            cout,
+            nb,
+            groups,
+            w: pw,
+            bias: pb,
+        }
+    }
+}
+
+/// `out[p][o] = act(bias[o] + sum_k x[p][k] w[o][k] + res[p][o])` for the pixels of `x`
+/// (`rows` rows of `k` values, `xs` apart); `res` has `cr <= cout` channels (the rest count as
+/// zero: TFLite's channel padding before the residual add).
+struct Mm<'a> {
+    x: &'a [f32],
+    xs: usize,
+    pk: &'a Packed,
+    res: Option<(&'a [f32], usize)>,
+    act: &'a Act,
+}
+
+fn mm_rows<L: Lanes>(m: &Mm, p0: usize, out: &mut [f32]) {
+    let rows = out.len() / m.pk.cout;
+    match m.pk.nb {
+        1 => mm_nb::<L, 1, 12>(m, p0, rows, out),
+        2 => mm_nb::<L, 2, 12>(m, p0, rows, out),
+        3 => mm_nb::<L, 3, 8>(m, p0, rows, out),
+        _ => mm_nb::<L, 4, 6>(m, p0, rows, out),
+    }
+}
+
+dispatch!(fn mm_rows_d(m: &Mm, p0: usize, out: &mut [f32]) = mm_rows);
+
+#[inline(always)]
+fn mm_nb<L: Lanes, const NB: usize, const MR: usize>(m: &Mm, p0: usize, rows: usize, out: &mut [f32]) {
+    let mut r = 0;
+    while r + MR <= rows {
+        mm_tile::<L, NB, MR>(m, p0 + r, r, out);
+        r += MR;
+    }
+    while r < rows {
+        mm_tile::<L, NB, 1>(m, p0 + r, r, out);
+        r += 1;
+    }
+}
+
+#[inline(always)]
+fn mm_tile<L: Lanes, const NB: usize, const MR: usize>(m: &Mm, p: usize, r: usize, out: &mut [f32]) {
+    let pk = m.pk;
+    let (k, cout, gw) = (pk.k, pk.cout, NB * W);
+    debug_assert!((p + MR - 1) * m.xs + k <= m.x.len());
+    debug_assert!((r + MR) * cout <= out.len());
+    let xp = m.x.as_ptr();
+    for g in 0..pk.groups {
+        let mut acc = [[L::zero(); NB]; MR];
+        // SAFETY: bias holds groups * gw values.
+        let b: [L; NB] = std::array::from_fn(|j| unsafe { L::load(pk.bias.as_ptr().add(g * gw + j * W)) });
+        for a in acc.iter_mut() {
+            *a = b;
+        }
+        let wg = pk.w[g * k * gw..(g + 1) * k * gw].as_ptr();
+        for kk in 0..k {
+            // SAFETY: kk < k, j * W + 16 <= gw: inside group g's weights.
+            let wv: [L; NB] = std::array::from_fn(|j| unsafe { L::load(wg.add(kk * gw + j * W)) });
+            for (i, a) in acc.iter_mut().enumerate() {
+                // SAFETY: pixel p + i < rows of x (debug-asserted above), kk < k.
+                let xv = L::splat(unsafe { *xp.add((p + i) * m.xs + kk) });
+                for j in 0..NB {
+                    a[j] = xv.fma(wv[j], a[j]);
+                }
+            }
+        }
+        for (i, a) in acc.iter().enumerate() {
+            for (j, &v) in a.iter().enumerate() {
+                let ch = g * gw + j * W;
+                if ch >= cout {
+                    break;
+                }
+                let n = (cout - ch).min(W);
+                let mut v = v;
+                if let Some((res, cr)) = m.res {
+                    if ch < cr {
+                        // SAFETY: pixel p + i of the residual, channels ch..ch+n clipped to cr.
+                        let rv = unsafe { L::load_n(res.as_ptr().add((p + i) * cr + ch), (cr - ch).min(W)) };
+                        v = v.add(rv);
+                    }
+                }
+                let v = m.act.apply(v, ch);
+                // SAFETY: row r + i of out, channels ch..ch+n < cout.
+                unsafe { v.store_n(out.as_mut_ptr().add((r + i) * cout + ch), n) };
+            }
+        }
+    }
+}
+
+/// A 1x1 convolution (stride 1) with fused bias, residual and activation. `res`, when given,
+/// has the same pixels and at most `cout` channels.
+pub fn pointwise(x: &Nhwc, pk: &Packed, res: Option<&Nhwc>, act: &Act) -> Nhwc {
+    assert_eq!(x.c, pk.k, "1x1 convolution input channels");
+    let p = x.pixels();
+    if let Some(r) = res {
+        assert_eq!((r.h, r.w), (x.h, x.w), "residual size");
+        assert!(r.c <= pk.cout, "residual channels");
+    }
+    let mut out = vec![0.0f32; p * pk.cout];
+    let m = Mm {
+        x: &x.data,
+        xs: x.c,
+        pk,
+        res: res.map(|r| (r.data.as_slice(), r.c)),
+        act,
+    };
+    for_rows(&mut out, p, pk.cout, p * pk.k * pk.cout, |p0, o| mm_rows_d(&m, p0, o));
+    Nhwc::from_vec(x.h, x.w, pk.cout, out)
+}
+
+/// Geometry of a full or depthwise convolution: kernel size, stride, the zero padding before
+/// the first row/column, and the output size.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Geom {
+    pub kh: usize,
+    pub kw: usize,
+    pub stride: usize,
+    pub pad_top: usize,
+    pub pad_left: usize,
+    pub oh: usize,
+    pub ow: usize,
+}
+
+impl Geom {
+    /// TFLite SAME padding for an `h x w` input: output `ceil(in / stride)`, the padding split
+    /// with the odd one after (so a stride-2 3x3 on an even size pads 0 before, 1 after).
+    pub fn same(h: usize, w: usize, k: usize, stride: usize) -> Geom {
+        let oh = h.div_ceil(stride);
+        let ow = w.div_ceil(stride);
+        let ph = ((oh - 1) * stride + k).saturating_sub(h);
+        let pw = ((ow - 1) * stride + k).saturating_sub(w);
+        Geom {
+            kh: k,
+            kw: k,
+            stride,
+            pad_top: ph / 2,
+            pad_left: pw / 2,
+            oh,
+            ow,
+        }
+    }
+
+    /// TFLite VALID padding.
+    pub fn valid(h: usize, w: usize, k: usize, stride: usize) -> Geom {
+        Geom {
+            kh: k,
+            kw: k,
+            stride,
+            pad_top: 0,
+            pad_left: 0,
+            oh: (h - k) / stride + 1,
+            ow: (w - k) / stride + 1,
+        }
+    }
+
+    /// Explicit symmetric padding `pad` on every side (a ZeroPadding2D layer before a VALID
+    /// convolution).
+    pub fn padded(h: usize, w: usize, k: usize, stride: usize, pad: usize) -> Geom {
+        Geom {
+            kh: k,
+            kw: k,
+            stride,
+            pad_top: pad,
+            pad_left: pad,
+            oh: (h + 2 * pad - k) / stride + 1,
+            ow: (w + 2 * pad - k) / stride + 1,
+        }
+    }
+
+    /// The range of kernel rows that land inside an input of `size` rows for output row `o`
+    /// (`pad` before), and the input row of kernel row 0.
+    #[inline(always)]
+    fn taps(o: usize, stride: usize, pad: usize, k: usize, size: usize) -> (usize, usize, isize) {
+        let i0 = (o * stride) as isize - pad as isize;
+        let lo = (-i0).max(0) as usize;
+        let hi = ((size as isize - i0).max(0) as usize).min(k);
+        (lo, hi.max(lo), i0)
+    }
+}
+
+/// A full convolution (`pk` packed from an OHWI kernel, `k = kh*kw*cin`) computed as a matrix
+/// product over gathered patches, in bands of output rows.
+pub fn conv(x: &Nhwc, pk: &Packed, g: Geom, act: &Act) -> Nhwc {
+    let kdim = g.kh * g.kw * x.c;
+    assert_eq!(pk.k, kdim, "convolution reduction size");
+    let p = g.oh * g.ow;
+    let mut out = vec![0.0f32; p * pk.cout];
+    for_rows(&mut out, g.oh, g.ow * pk.cout, p * kdim * pk.cout, |r0, band| {
+        let rows = band.len() / (g.ow * pk.cout);
+        // Patches of a few rows at a time, so the buffer stays in L2.
+        let step = (32768 / (g.ow * kdim).max(1)).clamp(1, rows.max(1));
+        let mut patch = vec![0.0f32; step * g.ow * kdim];
+        let mut r = 0;
+        while r < rows {
+            let n = step.min(rows - r);
+            let pb = &mut patch[..n * g.ow * kdim];
+            pb.fill(0.0);
+            for dy in 0..n {
+                let oy = r0 + r + dy;
+                let (ky0, ky1, iy0) = Geom::taps(oy, g.stride, g.pad_top, g.kh, x.h);
+                for ox in 0..g.ow {
+                    let (kx0, kx1, ix0) = Geom::taps(ox, g.stride, g.pad_left, g.kw, x.w);
+                    let base = (dy * g.ow + ox) * kdim;
+                    for ky in ky0..ky1 {
+                        let iy = (iy0 + ky as isize) as usize;
+                        let src = (iy * x.w + (ix0 + kx0 as isize) as usize) * x.c;
+                        let dst = base + (ky * g.kw + kx0) * x.c;
+                        let len = (kx1 - kx0) * x.c;
+                        pb[dst..dst + len].copy_from_slice(&x.data[src..src + len]);
+                    }
+                }
+            }
+            let m = Mm {
+                x: pb,
+                xs: kdim,
+                pk,
+                res: None,
+                act,
+            };
+            let o = &mut band[r * g.ow * pk.cout..(r + n) * g.ow * pk.cout];
+            mm_rows_d(&m, 0, o);
+            r += n;
+        }
+    });
+    Nhwc::from_vec(g.oh, g.ow, pk.cout, out)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Depthwise convolution.
+
+/// Depthwise weights: `[kh][kw][c]` (TFLite's `[1, kh, kw, c]`), bias `[c]`.
+#[derive(Debug, Clone)]
+pub struct DwWeights {
+    pub kh: usize,
+    pub kw: usize,
+    pub c: usize,
+    pub w: Vec<f32>,
+    pub bias: Vec<f32>,
+}
+
+struct Dw<'a> {
+    x: &'a Nhwc,
+    dw: &'a DwWeights,
+    g: Geom,
+    act: &'a Act,
+}
+
+fn dw_rows<L: Lanes>(d: &Dw, r0: usize, out: &mut [f32]) {
+    match (d.dw.kh, d.dw.kw) {
+        (3, 3) => dw_rows_k::<L, 3>(d, r0, out),
+        (5, 5) => dw_rows_k::<L, 5>(d, r0, out),
+        _ => dw_rows_k::<L, 0>(d, r0, out),
+    }
+}
+
+dispatch!(fn dw_rows_d(d: &Dw, r0: usize, out: &mut [f32]) = dw_rows);
+
+/// `K` is the kernel size when it is known at compile time (3 or 5: the taps unroll), 0 for
+/// any other size.
+#[inline(always)]
+fn dw_rows_k<L: Lanes, const K: usize>(d: &Dw, r0: usize, out: &mut [f32]) {
+    let (x, dw, g) = (d.x, d.dw, d.g);
+    let (kh, kw) = if K > 0 { (K, K) } else { (dw.kh, dw.kw) };
+    let c = x.c;
+    let rows = out.len() / (g.ow * c);
+    let xp = x.data.as_ptr();
+    let wp = dw.w.as_ptr();
+    for cb in (0..c).step_by(W) {
+        let n = (c - cb).min(W);
+        // SAFETY: channels cb..cb+n of the bias.
+        let bias = unsafe { L::load_n(dw.bias.as_ptr().add(cb), n) };
+        let mut wt = [L::zero(); 25];
+        if kh * kw <= 25 {
+            for (t, v) in wt.iter_mut().enumerate().take(kh * kw) {
+                // SAFETY: tap t < kh*kw, channels cb..cb+n.
+                *v = unsafe { L::load_n(wp.add(t * c + cb), n) };
+            }
+        }
+        for dy in 0..rows {
+            let oy = r0 + dy;
+            let (ky0, ky1, iy0) = Geom::taps(oy, g.stride, g.pad_top, kh, x.h);
+            for ox in 0..g.ow {
+                let (kx0, kx1, ix0) = Geom::taps(ox, g.stride, g.pad_left, kw, x.w);
+                let mut acc = bias;
+                if K > 0 && ky0 == 0 && ky1 == K && kx0 == 0 && kx1 == K {
+                    for ky in 0..K {
+                        let row = (iy0 + ky as isize) as usize * x.w;
+                        for kx in 0..K {
+                            let ix = (ix0 + kx as isize) as usize;
+                            // SAFETY: (row, ix) inside the input (full tap range), channels
+                            // cb..cb+n.
+                            let v = unsafe { L::load_n(xp.add((row + ix) * c + cb), n) };
+                            acc = v.fma(wt[ky * K + kx], acc);
+                        }
+                    }
+                } else {
+                    for ky in ky0..ky1 {
+                        let row = (iy0 + ky as isize) as usize * x.w;
+                        for kx in kx0..kx1 {
+                            let ix = (ix0 + kx as isize) as usize;
+                            let t = ky * kw + kx;
+                            let wv = if kh * kw <= 25 {
+                                wt[t]
+                            } else {
+                                // SAFETY: tap t, channels cb..cb+n.
+                                unsafe { L::load_n(wp.add(t * c + cb), n) }
+                            };
+                            // SAFETY: the tap ranges keep (row, ix) inside the input.
+                            let v = unsafe { L::load_n(xp.add((row + ix) * c + cb), n) };
+                            acc = v.fma(wv, acc);
+                        }
+                    }
+                }
+                let v = d.act.apply(acc, cb);
+                // SAFETY: output row dy of this band, pixel ox, channels cb..cb+n.
+                unsafe { v.store_n(out.as_mut_ptr().add((dy * g.ow + ox) * c + cb), n) };
+            }
+        }
+    }
+}
+
+/// A depthwise convolution with fused bias and activation.
+pub fn depthwise(x: &Nhwc, dw: &DwWeights, g: Geom, act: &Act) -> Nhwc {
+    assert_eq!(x.c, dw.c, "depthwise channels");
+    assert_eq!((g.kh, g.kw), (dw.kh, dw.kw), "depthwise kernel size");
+    let mut out = vec![0.0f32; g.oh * g.ow * x.c];
+    let d = Dw { x, dw, g, act };
+    let macs = g.oh * g.ow * x.c * g.kh * g.kw;
+    for_rows(&mut out, g.oh, g.ow * x.c, macs * 4, |r0, o| dw_rows_d(&d, r0, o));
+    Nhwc::from_vec(g.oh, g.ow, x.c, out)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Pooling, element-wise ops, resampling.
+
+/// 2x2 max pooling with stride 2; output `ceil(size / 2)` (a window at an odd edge takes the
+/// values it has, as TFLite's SAME pooling does; on even sizes SAME and VALID agree).
+pub fn max_pool2(x: &Nhwc) -> Nhwc {
+    let (oh, ow) = (x.h.div_ceil(2), x.w.div_ceil(2));
+    let mut out = Nhwc::zeros(oh, ow, x.c);
+    for oy in 0..oh {
+        for ox in 0..ow {
+            let o = &mut out.data[(oy * ow + ox) * x.c..(oy * ow + ox + 1) * x.c];
+            o.copy_from_slice(x.at(2 * oy, 2 * ox));
+            for (dy, dx) in [(0, 1), (1, 0), (1, 1)] {
+                let (iy, ix) = (2 * oy + dy, 2 * ox + dx);
+                if iy < x.h && ix < x.w {
+                    for (a, &b) in o.iter_mut().zip(x.at(iy, ix)) {
+                        if b > *a {
+                            *a = b;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    out
+}
+
+/// `act(a + b)` element by element; `b` may have fewer channels (zero-extended).
+pub fn add(a: &Nhwc, b: &Nhwc, act: &Act) -> Nhwc {
+    assert_eq!((a.h, a.w), (b.h, b.w), "add sizes");
+    assert!(b.c <= a.c, "add channels");
+    let mut out = a.clone();
+    for p in 0..a.pixels() {
+        let o = &mut out.data[p * a.c..(p + 1) * a.c];
+        for (v, &w) in o.iter_mut().zip(&b.data[p * b.c..(p + 1) * b.c]) {
+            *v += w;
+        }
+        if *act != Act::None {
+            for (ch, v) in o.iter_mut().enumerate() {
+                *v = act.apply_scalar(*v, ch);
+            }
+        }
+    }
+    out
+}
+
+/// Applies an activation in place.
+pub fn activate(x: &mut Nhwc, act: &Act) {
+    let c = x.c;
+    for (i, v) in x.data.iter_mut().enumerate() {
+        *v = act.apply_scalar(*v, i % c);
+    }
+}
+
+/// The logistic function, as TFLite's LOGISTIC computes it for f32.
+pub fn sigmoid(v: f32) -> f32 {
+    1.0 / (1.0 + (-v).exp())
+}
+
+/// Mean over all pixels per channel (AVERAGE_POOL_2D over the whole map): a 1x1 map.
+pub fn global_avg_pool(x: &Nhwc) -> Nhwc {
+    let mut s = vec![0.0f64; x.c];
+    for p in 0..x.pixels() {
+        for (a, &v) in s.iter_mut().zip(&x.data[p * x.c..(p + 1) * x.c]) {
+            *a += v as f64;
+        }
+    }
+    let n = x.pixels() as f64;
+    Nhwc::from_vec(1, 1, x.c, s.iter().map(|v| (v / n) as f32).collect())
+}
+
+/// `x * scale` with one scale per channel (a squeeze-and-excitation gate).
+pub fn scale_channels(x: &Nhwc, scale: &[f32]) -> Nhwc {
+    assert_eq!(scale.len(), x.c, "channel scales");
+    let mut out = x.clone();
+    for p in out.data.chunks_exact_mut(x.c) {
+        for (v, &s) in p.iter_mut().zip(scale) {
+            *v *= s;
+        }
+    }
+    out
+}
+
+/// RESIZE_BILINEAR with `half_pixel_centers = true`, `align_corners = false` (TFLite's
+/// reference arithmetic: the source coordinate `(o + 0.5) * in / out - 0.5`, neighbours
+/// clamped to the map).
+pub fn resize_bilinear(x: &Nhwc, oh: usize, ow: usize) -> Nhwc {
+    let taps = |o: usize, n_in: usize, n_out: usize| {
+        let s = (o as f32 + 0.5) * (n_in as f32 / n_out as f32) - 0.5;
+        let f = s.floor();
+        let lo = (f as isize).max(0) as usize;
+        let hi = (s.ceil() as isize).clamp(0, n_in as isize - 1) as usize;
+        (lo.min(n_in - 1), hi, s - lo as f32)
+    };
+    let ys: Vec<_> = (0..oh).map(|o| taps(o, x.h, oh)).collect();
+    let xs: Vec<_> = (0..ow).map(|o| taps(o, x.w, ow)).collect();
+    let mut out = Nhwc::zeros(oh, ow, x.c);
+    for (oy, &(y0, y1, dy)) in ys.iter().enumerate() {
+        for (ox, &(x0, x1, dx)) in xs.iter().enumerate() {
+            let (a, b, c, d) = (x.at(y0, x0), x.at(y0, x1), x.at(y1, x0), x.at(y1, x1));
+            let o = &mut out.data[(oy * ow + ox) * x.c..(oy * ow + ox + 1) * x.c];
+            for ch in 0..x.c {
+                o[ch] = a[ch] * (1.0 - dy) * (1.0 - dx)
+                    + c[ch] * dy * (1.0 - dx)
+                    + b[ch] * (1.0 - dy) * dx
+                    + d[ch] * dy * dx;
+            }
+        }
+    }
+    out
+}
+
+/// DEPTH_TO_SPACE with block 2: `out[2y+i][2x+j][c] = in[y][x][(2i+j)*C + c]`.
+pub fn depth_to_space2(x: &Nhwc) -> Nhwc {
+    assert_eq!(x.c % 4, 0, "depth_to_space channels");
+    let c = x.c / 4;
+    let (oh, ow) = (x.h * 2, x.w * 2);
+    let mut out = Nhwc::zeros(oh, ow, c);
+    for y in 0..x.h {
+        for xx in 0..x.w {
+            let src = x.at(y, xx);
+            for i in 0..2 {
+                for j in 0..2 {
+                    let o = ((2 * y + i) * ow + 2 * xx + j) * c;
+                    out.data[o..o + c].copy_from_slice(&src[(2 * i + j) * c..(2 * i + j + 1) * c]);
+                }
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rnd(n: usize, seed: u64) -> Vec<f32> {
+        let mut s = seed.wrapping_mul(0x9e3779b97f4a7c15) | 1;
+        (0..n)
+            .map(|_| {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+            })
+            .collect()
+    }
+
+    /// Worst absolute difference, with its index.
+    fn worst(a: &[f32], b: &[f32]) -> (usize, f32) {
+        assert_eq!(a.len(), b.len());
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .enumerate()
+            .fold((0, 0.0), |m, (i, d)| if d > m.1 { (i, d) } else { m })
+    }
+
+    /// f32 sums of a few hundred terms of size ~1 against an f64 reference.
+    const TOL: f32 = 2e-5;
+
+    fn naive_conv(x: &Nhwc, w: &[f32], b: &[f32], cout: usize, g: Geom, dw: bool) -> Nhwc {
+        let mut out = Nhwc::zeros(g.oh, g.ow, cout);
+        for oy in 0..g.oh {
+            for ox in 0..g.ow {
+                for o in 0..cout {
+                    let mut s = b[o] as f64;
+                    for ky in 0..g.kh {
+                        for kx in 0..g.kw {
+                            let iy = (oy * g.stride + ky) as isize - g.pad_top as isize;
+                            let ix = (ox * g.stride + kx) as isize - g.pad_left as isize;
+                            if iy < 0 || ix < 0 || iy >= x.h as isize || ix >= x.w as isize {
+                                continue;
+                            }
+                            let px = x.at(iy as usize, ix as usize);
+                            if dw {
+                                s += px[o] as f64 * w[(ky * g.kw + kx) * cout + o] as f64;
+                            } else {
+                                for ci in 0..x.c {
+                                    s += px[ci] as f64
+                                        * w[((o * g.kh + ky) * g.kw + kx) * x.c + ci] as f64;
+                                }
+                            }
+                        }
+                    }
+                    out.data[(oy * g.ow + ox) * cout + o] = s as f32;
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn pointwise_matches_naive_with_residual_and_prelu() {
+        for &(h, w, cin, cout, cr) in &[(5, 7, 16, 16, 16), (9, 4, 24, 28, 24), (3, 3, 88, 96, 88), (1, 1, 32, 1404, 0), (13, 11, 42, 48, 0)] {
+            let x = Nhwc::from_vec(h, w, cin, rnd(h * w * cin, 1));
+            let wt = rnd(cout * cin, 2);
+            let b = rnd(cout, 3);
+            let res = Nhwc::from_vec(h, w, cr, rnd(h * w * cr, 4));
+            let alpha = rnd(cout, 5);
+            let act = Act::prelu(&alpha);
+            let pk = Packed::new(&wt, &b, cout, cin);
+            let got = pointwise(&x, &pk, (cr > 0).then_some(&res), &act);
+            let g = Geom::valid(h, w, 1, 1);
+            let mut want = naive_conv(&x, &wt, &b, cout, g, false);
+            for p in 0..h * w {
+                for o in 0..cout {
+                    let v = &mut want.data[p * cout + o];
+                    if o < cr {
+                        *v += res.data[p * cr + o];
+                    }
+                    *v = act.apply_scalar(*v, o);
+                }
+            }
+            let (i, d) = worst(&got.data, &want.data);
+            assert!(d < TOL, "{h}x{w} {cin}->{cout}: index {i}: {} vs {}", got.data[i], want.data[i]);
+        }
+    }
+
+    #[test]
+    fn conv_matches_naive_same_valid_and_padded() {
+        let x = Nhwc::from_vec(17, 14, 3, rnd(17 * 14 * 3, 7));
+        for (k, s, g, cout) in [
+            (5, 2, Geom::same(17, 14, 5, 2), 24),
+            (3, 2, Geom::same(17, 14, 3, 2), 16),
+            (3, 2, Geom::padded(17, 14, 3, 2, 1), 32),
+            (3, 3, Geom::valid(17, 14, 3, 3), 40),
+            (2, 2, Geom::valid(17, 14, 2, 2), 10),
+        ] {
+            assert_eq!((g.kh, g.stride), (k, s));
+            let wt = rnd(cout * k * k * 3, 8);
+            let b = rnd(cout, 9);
+            let pk = Packed::new(&wt, &b, cout, k * k * 3);
+            let got = conv(&x, &pk, g, &Act::Relu);
+            let mut want = naive_conv(&x, &wt, &b, cout, g, false);
+            activate(&mut want, &Act::Relu);
+            let (i, d) = worst(&got.data, &want.data);
+            assert!(d < TOL, "k{k} s{s}: index {i}: {} vs {}", got.data[i], want.data[i]);
+        }
+    }
+
+    #[test]
+    fn depthwise_matches_naive() {
+        for &(h, w, c, k, s) in &[(16, 16, 24, 3, 1), (16, 16, 28, 3, 2), (9, 7, 42, 3, 2), (12, 12, 16, 5, 1), (6, 5, 20, 4, 1)] {
+            let x = Nhwc::from_vec(h, w, c, rnd(h * w * c, 11));
+            let wt = rnd(k * k * c, 12);
+            let b = rnd(c, 13);
+            let dw = DwWeights {
+                kh: k,
+                kw: k,
+                c,
+                w: wt.clone(),
+                bias: b.clone(),
+            };
+            for g in [Geom::same(h, w, k, s), Geom::padded(h, w, k, s, 1)] {
+                let got = depthwise(&x, &dw, g, &Act::HardSwish);
+                let mut want = naive_conv(&x, &wt, &b, c, g, true);
+                activate(&mut want, &Act::HardSwish);
+                let (i, d) = worst(&got.data, &want.data);
+                assert!(d < TOL, "{h}x{w}x{c} k{k} s{s}: index {i}: {} vs {}", got.data[i], want.data[i]);
+            }
+        }
+    }
+
+    #[test]
+    fn same_padding_is_tflite_asymmetric() {
+        let g = Geom::same(128, 128, 5, 2);
+        assert_eq!((g.pad_top, g.oh), (1, 64));
+        let g = Geom::same(128, 128, 3, 2);
+        assert_eq!((g.pad_top, g.oh), (0, 64));
+        let g = Geom::same(64, 64, 3, 1);
+        assert_eq!((g.pad_top, g.oh), (1, 64));
+    }
+
+    #[test]
+    fn pooling_resize_and_depth_to_space() {
+        let x = Nhwc::from_vec(3, 3, 1, (0..9).map(|v| v as f32).collect());
+        assert_eq!(max_pool2(&x).data, vec![4.0, 5.0, 7.0, 8.0]);
+        let y = Nhwc::from_vec(1, 2, 1, vec![0.0, 4.0]);
+        // half-pixel centres: source x = -0.25 (clamped), 0.25, 0.75, 1.25 (clamped)
+        assert_eq!(resize_bilinear(&y, 1, 4).data, vec![0.0, 1.0, 3.0, 4.0]);
+        let z = Nhwc::from_vec(1, 1, 4, vec![1.0, 2.0, 3.0, 4.0]);
+        assert_eq!(depth_to_space2(&z).data, vec![1.0, 2.0, 3.0, 4.0]);
+        let p = global_avg_pool(&x);
+        assert_eq!(p.data, vec![4.0]);
+    }
+}

@@ -1,0 +1,14 @@
+//! Face perception (placeholder docs, rewritten below).
+
+pub mod anchors;
+pub mod detection;
+pub mod detection_net;
+pub mod error;
+pub mod kernels;
+pub mod layers;
+pub mod simd;
+pub mod tensor;
+pub mod warp;
+pub mod weights;
+
+pub use error::FaceError;

@@ -1,0 +1,310 @@
+//! Image to model input, as MediaPipe's CPU `ImageToTensorCalculator` does it: a rotated
+//! rectangle of the image is sampled into the tensor by OpenCV's `warpPerspective` (bilinear,
+//! 8-bit fixed point: coordinates rounded to 1/32 pixel, weights in 1/32768), the result rounded
+//! to 8 bits, then mapped linearly to the model's value range.
+//!
+//! The sampling here reproduces OpenCV's integer arithmetic, so the crops are the same bytes
+//! MediaPipe feeds its models (checked against MediaPipe's own calculator in the tests; a pixel
+//! can differ by one level only where a coordinate lands within rounding error of a 1/64-pixel
+//! tie).
+
+use image::RgbImage;
+
+use crate::tensor::Nhwc;
+
+/// A rectangle of the image in pixels: centre, size, and rotation in radians (positive turns
+/// the rectangle's x axis towards +y, the image's down).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RotatedRect {
+    pub cx: f32,
+    pub cy: f32,
+    pub w: f32,
+    pub h: f32,
+    pub rotation: f32,
+}
+
+/// What a sample outside the image reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Border {
+    /// Zero (black): the detectors' letterbox and the segmentation input.
+    Zero,
+    /// The nearest edge pixel: the landmark crop.
+    Replicate,
+}
+
+/// Sub-pixel positions per pixel (OpenCV's `INTER_TAB_SIZE`).
+const TAB: i64 = 32;
+/// Fixed-point scale of the bilinear weights (OpenCV's `INTER_REMAP_COEF_SCALE`).
+const COEF_BITS: u32 = 15;
+
+impl RotatedRect {
+    /// The four corners as OpenCV's `RotatedRect::points` computes them in f32: bottom-left,
+    /// top-left, top-right, bottom-right of the unrotated rectangle.
+    fn corners(&self) -> [(f32, f32); 4] {
+        // MediaPipe hands OpenCV the angle in f32 degrees; OpenCV converts back in f64.
+        let degrees = ((self.rotation * 180.0) as f64 / std::f64::consts::PI) as f32;
+        let angle = degrees as f64 * std::f64::consts::PI / 180.0;
+        let b = angle.cos() as f32 * 0.5;
+        let a = angle.sin() as f32 * 0.5;
+        let p0 = (
+            self.cx - a * self.h - b * self.w,
+            self.cy + b * self.h - a * self.w,
+        );
+        let p1 = (
+            self.cx + a * self.h - b * self.w,
+            self.cy - b * self.h - a * self.w,
+        );
+        let p2 = (2.0 * self.cx - p0.0, 2.0 * self.cy - p0.1);
+        let p3 = (2.0 * self.cx - p1.0, 2.0 * self.cy - p1.1);
+        [p0, p1, p2, p3]
+    }
+
+    /// The 3x3 map from output pixel coordinates of an `ow x oh` crop to image coordinates,
+    /// computed as MediaPipe gets it from OpenCV: `getPerspectiveTransform` from the corners to
+    /// the crop's edges (0 and `ow`, not pixel centres), solved by LU with partial pivoting in
+    /// f64, then inverted by cofactors. (Analytically it is affine; reproducing OpenCV's
+    /// rounding keeps the sampled coordinates on the same side of 1/64-pixel ties.)
+    pub fn crop_to_image(&self, ow: usize, oh: usize) -> [f64; 9] {
+        let src = self.corners();
+        let (ow, oh) = (ow as f32, oh as f32);
+        let dst = [(0.0f32, oh), (0.0, 0.0), (ow, 0.0), (ow, oh)];
+        let mut a = [[0.0f64; 8]; 8];
+        let mut b = [0.0f64; 8];
+        for i in 0..4 {
+            let ((sx, sy), (dx, dy)) = (src[i], dst[i]);
+            a[i][0] = sx as f64;
+            a[i][1] = sy as f64;
+            a[i][2] = 1.0;
+            a[i + 4][3] = sx as f64;
+            a[i + 4][4] = sy as f64;
+            a[i + 4][5] = 1.0;
+            // OpenCV multiplies the f32 coordinates in f32.
+            a[i][6] = (-sx * dx) as f64;
+            a[i][7] = (-sy * dx) as f64;
+            a[i + 4][6] = (-sx * dy) as f64;
+            a[i + 4][7] = (-sy * dy) as f64;
+            b[i] = dx as f64;
+            b[i + 4] = dy as f64;
+        }
+        let x = lu_solve(a, b);
+        let m = [x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7], 1.0];
+        invert3(&m)
+    }
+}
+
+/// Gaussian elimination with partial pivoting and back substitution, in the order of
+/// OpenCV's `LUImpl` (a singular system gives zeros).
+fn lu_solve(mut a: [[f64; 8]; 8], mut b: [f64; 8]) -> [f64; 8] {
+    const N: usize = 8;
+    for i in 0..N {
+        let mut k = i;
+        for j in i + 1..N {
+            if a[j][i].abs() > a[k][i].abs() {
+                k = j;
+            }
+        }
+        if a[k][i].abs() < f64::EPSILON * 100.0 {
+            return [0.0; N];
+        }
+        if k != i {
+            a.swap(i, k);
+            b.swap(i, k);
+        }
+        let d = -1.0 / a[i][i];
+        for j in i + 1..N {
+            let alpha = a[j][i] * d;
+            for c in i + 1..N {
+                a[j][c] += alpha * a[i][c];
+            }
+            b[j] += alpha * b[i];
+        }
+    }
+    for i in (0..N).rev() {
+        let mut s = b[i];
+        for k in i + 1..N {
+            s -= a[i][k] * b[k];
+        }
+        b[i] = s / a[i][i];
+    }
+    b
+}
+
+/// 3x3 inverse by cofactors over the determinant (OpenCV's `invert` for 3x3 f64).
+fn invert3(m: &[f64; 9]) -> [f64; 9] {
+    let s = |r: usize, c: usize| m[r * 3 + c];
+    let det = s(0, 0) * (s(1, 1) * s(2, 2) - s(1, 2) * s(2, 1)) - s(0, 1) * (s(1, 0) * s(2, 2) - s(1, 2) * s(2, 0))
+        + s(0, 2) * (s(1, 0) * s(2, 1) - s(1, 1) * s(2, 0));
+    if det == 0.0 {
+        return [0.0; 9];
+    }
+    let d = 1.0 / det;
+    [
+        (s(1, 1) * s(2, 2) - s(1, 2) * s(2, 1)) * d,
+        (s(0, 2) * s(2, 1) - s(0, 1) * s(2, 2)) * d,
+        (s(0, 1) * s(1, 2) - s(0, 2) * s(1, 1)) * d,
+        (s(1, 2) * s(2, 0) - s(1, 0) * s(2, 2)) * d,
+        (s(0, 0) * s(2, 2) - s(0, 2) * s(2, 0)) * d,
+        (s(0, 2) * s(1, 0) - s(0, 0) * s(1, 2)) * d,
+        (s(1, 0) * s(2, 1) - s(1, 1) * s(2, 0)) * d,
+        (s(0, 1) * s(2, 0) - s(0, 0) * s(2, 1)) * d,
+        (s(0, 0) * s(1, 1) - s(0, 1) * s(1, 0)) * d,
+    ]
+}
+
+/// OpenCV's `cvRound` of a double: to nearest, ties to even.
+fn round_even(v: f64) -> i64 {
+    let r = v.round();
+    if (v - v.trunc()).abs() == 0.5 {
+        2.0 * (v / 2.0).round()
+    } else {
+        r
+    }
+    .clamp(i32::MIN as f64, i32::MAX as f64) as i64
+}
+
+/// Samples `roi` of `img` into an `ow x oh` 8-bit RGB crop (OpenCV `warpPerspective`,
+/// `INTER_LINEAR`).
+pub fn warp_u8(img: &RgbImage, roi: &RotatedRect, ow: usize, oh: usize, border: Border) -> Vec<u8> {
+    let (iw, ih) = (img.width() as i64, img.height() as i64);
+    let src = img.as_raw();
+    let m = roi.crop_to_image(ow, oh);
+    let mut out = vec![0u8; ow * oh * 3];
+    if iw == 0 || ih == 0 {
+        return out;
+    }
+    let px = |x: i64, y: i64| -> Option<&[u8]> {
+        if x < 0 || y < 0 || x >= iw || y >= ih {
+            None
+        } else {
+            let o = ((y * iw + x) * 3) as usize;
+            Some(&src[o..o + 3])
+        }
+    };
+    let clamp = |v: i64, n: i64| v.clamp(0, n - 1);
+    // OpenCV evaluates the map per block of output pixels (16 rows by up to 1024/16 columns):
+    // the row start at the block's first column, then one step per column.
+    let bh0 = 16.min(oh).max(1);
+    let bw0 = (1024 / bh0).min(ow).max(1);
+    for y in 0..oh {
+        let yf = y as f64;
+        for x in 0..ow {
+            let bx = (x / bw0 * bw0) as f64;
+            let x1 = (x % bw0) as f64;
+            let x0 = m[0] * bx + m[1] * yf + m[2];
+            let y0 = m[3] * bx + m[4] * yf + m[5];
+            let w0 = m[6] * bx + m[7] * yf + m[8];
+            let w = w0 + m[6] * x1;
+            let w = if w != 0.0 { TAB as f64 / w } else { 0.0 };
+            let sx = round_even((x0 + m[0] * x1) * w);
+            let sy = round_even((y0 + m[3] * x1) * w);
+            let (x0, y0) = (sx >> 5, sy >> 5);
+            let (fx, fy) = (sx & (TAB - 1), sy & (TAB - 1));
+            // The bilinear weights are products of multiples of 1/32: exact in 1/32768 units.
+            let unit = (1 << COEF_BITS) / (TAB * TAB);
+            let w = [
+                (TAB - fy) * (TAB - fx) * unit,
+                (TAB - fy) * fx * unit,
+                fy * (TAB - fx) * unit,
+                fy * fx * unit,
+            ];
+            let o = &mut out[(y * ow + x) * 3..(y * ow + x + 1) * 3];
+            let taps: [Option<&[u8]>; 4] = match border {
+                Border::Zero => {
+                    if x0 >= iw || x0 + 1 < 0 || y0 >= ih || y0 + 1 < 0 {
+                        continue;
+                    }
+                    [px(x0, y0), px(x0 + 1, y0), px(x0, y0 + 1), px(x0 + 1, y0 + 1)]
+                }
+                Border::Replicate => {
+                    let (xa, xb) = (clamp(x0, iw), clamp(x0 + 1, iw));
+                    let (ya, yb) = (clamp(y0, ih), clamp(y0 + 1, ih));
+                    [px(xa, ya), px(xb, ya), px(xa, yb), px(xb, yb)]
+                }
+            };
+            for (c, v) in o.iter_mut().enumerate() {
+                let mut s: i64 = 0;
+                for (t, wt) in taps.iter().zip(w) {
+                    if let Some(p) = t {
+                        s += p[c] as i64 * wt;
+                    }
+                }
+                *v = ((s + (1 << (COEF_BITS - 1))) >> COEF_BITS).clamp(0, 255) as u8;
+            }
+        }
+    }
+    out
+}
+
+/// The 8-bit crop mapped to `[lo, hi]` (0 -> lo, 255 -> hi) as a model input.
+pub fn to_tensor(crop: &[u8], ow: usize, oh: usize, lo: f32, hi: f32) -> Nhwc {
+    let scale = (hi - lo) / 255.0;
+    Nhwc::from_vec(oh, ow, 3, crop.iter().map(|&v| v as f32 * scale + lo).collect())
+}
+
+/// The whole image letterboxed (aspect kept, centred, zero border) into an `n x n` tensor:
+/// the detectors' input. Returns the tensor and the padded rectangle it covers (for mapping
+/// detections back).
+pub fn letterbox(img: &RgbImage, n: usize, lo: f32, hi: f32) -> (Nhwc, RotatedRect) {
+    let roi = letterbox_rect(img.width(), img.height());
+    let crop = warp_u8(img, &roi, n, n, Border::Zero);
+    (to_tensor(&crop, n, n, lo, hi), roi)
+}
+
+/// MediaPipe's `PadRoi` for a square tensor: the whole image, widened on its short side to a
+/// square.
+pub fn letterbox_rect(w: u32, h: u32) -> RotatedRect {
+    let (w, h) = (w as f32, h as f32);
+    let side = w.max(h);
+    RotatedRect {
+        cx: 0.5 * w,
+        cy: 0.5 * h,
+        w: side,
+        h: side,
+        rotation: 0.0,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn identity_crop_copies_pixels() {
+        let img = RgbImage::from_fn(8, 6, |x, y| image::Rgb([x as u8 * 10, y as u8 * 20, 7]));
+        let roi = RotatedRect {
+            cx: 4.0,
+            cy: 3.0,
+            w: 8.0,
+            h: 6.0,
+            rotation: 0.0,
+        };
+        let out = warp_u8(&img, &roi, 8, 6, Border::Zero);
+        assert_eq!(out, img.as_raw().clone());
+    }
+
+    #[test]
+    fn borders() {
+        let img = RgbImage::from_pixel(4, 4, image::Rgb([200, 100, 50]));
+        // A rectangle twice the image, centred: the outer ring samples outside.
+        let roi = RotatedRect {
+            cx: 2.0,
+            cy: 2.0,
+            w: 8.0,
+            h: 8.0,
+            rotation: 0.0,
+        };
+        let z = warp_u8(&img, &roi, 8, 8, Border::Zero);
+        let r = warp_u8(&img, &roi, 8, 8, Border::Replicate);
+        assert_eq!(&z[0..3], &[0, 0, 0]);
+        assert_eq!(&r[0..3], &[200, 100, 50]);
+        assert!(r.chunks(3).all(|p| p == [200, 100, 50]));
+    }
+
+    #[test]
+    fn round_even_ties() {
+        assert_eq!(round_even(2.5), 2);
+        assert_eq!(round_even(3.5), 4);
+        assert_eq!(round_even(-2.5), -2);
+        assert_eq!(round_even(2.4999), 2);
+    }
+}

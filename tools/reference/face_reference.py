@@ -1,0 +1,326 @@
+#!/usr/bin/env python3
+"""MediaPipe reference for `crates/face`: writes the small golden files its tests compare to.
+
+Pinned: mediapipe==0.10.21 (cp311 wheel, the last with the legacy face models and API),
+numpy==1.26.4, opencv-contrib-python==4.11.0.86 (pulled by mediapipe), scikit-image==0.26.0
+(test pictures). Run from the repository root:
+
+    python3 tools/reference/face_reference.py goldens --out crates/face/tests/golden
+
+What is written (everything from MediaPipe itself, nothing from this project's code):
+
+  images/*.png      the test pictures: scikit-image's public-domain / CC0 photos and
+                    deterministic transforms of them (scaled into larger canvases, rotated,
+                    flipped, cropped, shrunk to small faces); their licences in images/README.md.
+  crops/*.png       what MediaPipe's ImageToTensorCalculator feeds a model for a given image and
+                    rotated rectangle (8-bit, before the value-range map), several rectangles
+                    and both border modes.
+  models.json       raw model outputs, computed by MediaPipe's InferenceCalculator (TFLite with
+                    XNNPACK, as the solutions run them) on those crops: detector logits and the
+                    regressors of the best anchors, the 478-point model's outputs, a 64x64
+                    subsample of the selfie mask.
+  pipeline.json     per test picture: FaceDetection (both models) detections, FaceMesh
+                    (static_image_mode, refine_landmarks: 478 points) landmarks; the selfie masks
+                    as masks/*.png (8-bit).
+  video.json        FaceMesh in video (tracking) mode over a synthetic sequence (frames made from
+                    the test pictures, written to video/*.png): landmarks per frame, and a frame
+                    with no face that makes it re-detect.
+
+Model inputs are the exact tensors MediaPipe builds: the reference builds small MediaPipe
+graphs (ImageToTensorCalculator -> InferenceCalculator -> TensorsToFloatsCalculator) through the
+mediapipe Python binding, so crops and raw outputs are MediaPipe's own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import cv2
+import numpy as np
+
+import mediapipe as mp
+from google.protobuf import text_format
+from mediapipe.framework import calculator_pb2
+from mediapipe.framework.formats import rect_pb2
+from mediapipe.python import packet_creator, packet_getter
+from mediapipe.python._framework_bindings import resource_util
+
+MP_DIR = os.path.dirname(mp.__file__)
+resource_util.set_resource_dir(os.path.dirname(MP_DIR))
+
+# ----------------------------------------------------------------------------------------------
+# MediaPipe graphs run from Python.
+
+
+def run_graph(cfg_text: str, inputs: dict, outputs: list[str], side=None):
+    """Runs a one-shot graph; `inputs` maps stream names to packets; returns the first packet
+    value of each output stream (as float lists)."""
+    cfg = text_format.Parse(cfg_text, calculator_pb2.CalculatorGraphConfig())
+    g = mp.CalculatorGraph(graph_config=cfg)
+    got = {name: [] for name in outputs}
+    for name in outputs:
+        g.observe_output_stream(name, lambda s, p, n=name: got[n].append(np.array(packet_getter.get_float_list(p), np.float32)))
+    g.start_run(side or {})
+    for name, packet in inputs.items():
+        g.add_packet_to_input_stream(name, packet.at(0))
+    g.close()
+    return {k: (v[0] if v else None) for k, v in got.items()}
+
+
+def image_packet(img: np.ndarray):
+    return packet_creator.create_image_frame(image_format=mp.ImageFormat.SRGB, data=np.ascontiguousarray(img))
+
+
+def rect_packet(r: dict):
+    return packet_creator.create_proto(
+        rect_pb2.NormalizedRect(
+            x_center=r["cx"], y_center=r["cy"], width=r["w"], height=r["h"], rotation=r["rotation"]
+        )
+    )
+
+
+def image_to_tensor_node(size, lo, hi, border, keep_aspect, out="tensors"):
+    b = {"zero": "BORDER_ZERO", "replicate": "BORDER_REPLICATE"}[border]
+    return f"""
+node {{
+  calculator: "ImageToTensorCalculator"
+  input_stream: "IMAGE:image"
+  input_stream: "NORM_RECT:roi"
+  output_stream: "TENSORS:{out}"
+  options: {{ [mediapipe.ImageToTensorCalculatorOptions.ext] {{
+      output_tensor_width: {size[0]} output_tensor_height: {size[1]}
+      keep_aspect_ratio: {str(keep_aspect).lower()}
+      output_tensor_float_range {{ min: {lo} max: {hi} }}
+      border_mode: {b} }} }}
+}}"""
+
+
+def mp_crop(img, roi, size, border):
+    """MediaPipe's 8-bit crop of `roi` (normalised rect) of `img`."""
+    cfg = (
+        'input_stream: "image" input_stream: "roi" output_stream: "floats"'
+        + image_to_tensor_node(size, 0.0, 1.0, border, False)
+        + """
+node { calculator: "TensorsToFloatsCalculator" input_stream: "TENSORS:tensors" output_stream: "FLOATS:floats" }"""
+    )
+    out = run_graph(cfg, {"image": image_packet(img), "roi": rect_packet(roi)}, ["floats"])["floats"]
+    v = np.round(out * 255.0)
+    assert np.abs(out * 255.0 - v).max() < 1e-3, "crop is not 8-bit"
+    return v.astype(np.uint8).reshape(size[1], size[0], 3)
+
+
+def mp_model(img, roi, size, lo, hi, border, keep_aspect, model_path, n_outputs):
+    """Raw outputs of a model on MediaPipe's own input tensor (the custom-op resolver loaded
+    as FaceMesh and SelfieSegmentation load it)."""
+    splits = "".join(f" ranges: {{ begin: {i} end: {i + 1} }}" for i in range(n_outputs))
+    outs = "".join(f' output_stream: "t{i}"' for i in range(n_outputs))
+    floats = "".join(
+        f'node {{ calculator: "TensorsToFloatsCalculator" input_stream: "TENSORS:t{i}" output_stream: "FLOATS:f{i}" }}\n'
+        for i in range(n_outputs)
+    )
+    cfg = (
+        'input_stream: "image" input_stream: "roi"'
+        + "".join(f' output_stream: "f{i}"' for i in range(n_outputs))
+        + image_to_tensor_node(size, lo, hi, border, keep_aspect, out="input_tensors")
+        + f"""
+node {{ calculator: "TfLiteCustomOpResolverCalculator" output_side_packet: "OP_RESOLVER:op_resolver" }}
+node {{
+  calculator: "InferenceCalculator"
+  input_stream: "TENSORS:input_tensors"
+  output_stream: "TENSORS:output_tensors"
+  input_side_packet: "OP_RESOLVER:op_resolver"
+  options: {{ [mediapipe.InferenceCalculatorOptions.ext] {{ model_path: "{model_path}" delegate {{ xnnpack {{}} }} }} }}
+}}
+node {{
+  calculator: "SplitTensorVectorCalculator"
+  input_stream: "output_tensors"{outs}
+  options: {{ [mediapipe.SplitVectorCalculatorOptions.ext] {{{splits} }} }}
+}}
+{floats}"""
+    )
+    got = run_graph(cfg, {"image": image_packet(img), "roi": rect_packet(roi)}, [f"f{i}" for i in range(n_outputs)])
+    return [got[f"f{i}"] for i in range(n_outputs)]
+
+
+# ----------------------------------------------------------------------------------------------
+# Test pictures.
+
+
+def skimage_pictures():
+    import skimage.data as d
+
+    return {
+        "astronaut": d.astronaut(),
+        "camera": cv2.cvtColor(d.camera(), cv2.COLOR_GRAY2RGB),
+        "chelsea": d.chelsea(),
+        "coffee": d.coffee(),
+        "rocket": d.rocket(),
+    }
+
+
+def canvas(img, cw, ch, x, y, scale, fill=(40, 60, 80)):
+    """`img` scaled by `scale` (area) and pasted with its top-left at (x, y) on a plain canvas."""
+    h, w = img.shape[:2]
+    small = cv2.resize(img, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
+    out = np.empty((ch, cw, 3), np.uint8)
+    out[:] = fill
+    sh, sw = small.shape[:2]
+    x0, y0 = max(x, 0), max(y, 0)
+    x1, y1 = min(x + sw, cw), min(y + sh, ch)
+    out[y0:y1, x0:x1] = small[y0 - y : y1 - y, x0 - x : x1 - x]
+    return out
+
+
+def rotate(img, degrees, scale=1.0):
+    h, w = img.shape[:2]
+    m = cv2.getRotationMatrix2D((w / 2, h / 2), degrees, scale)
+    return cv2.warpAffine(img, m, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+def test_pictures():
+    """(name, picture, licence note) of every test picture, deterministic."""
+    s = skimage_pictures()
+    a = s["astronaut"]
+    nasa = "NASA, public domain (scikit-image `astronaut`)"
+    out = [
+        ("astronaut_384", cv2.resize(a, (384, 384), interpolation=cv2.INTER_AREA), nasa),
+        ("astronaut_tilt20", rotate(cv2.resize(a, (320, 320), interpolation=cv2.INTER_AREA), 20), nasa),
+        ("astronaut_tilt_minus35", rotate(cv2.resize(a, (320, 320), interpolation=cv2.INTER_AREA), -35), nasa),
+        ("astronaut_flip", cv2.flip(cv2.resize(a, (300, 300), interpolation=cv2.INTER_AREA), 1), nasa),
+        ("astronaut_face_crop", cv2.resize(a[40:300, 120:330], (210, 260), interpolation=cv2.INTER_AREA), nasa),
+        ("astronaut_small_in_wide", canvas(a, 480, 270, 300, 60, 0.3), nasa),
+        ("astronaut_tiny_in_tall", canvas(a, 240, 400, 20, 200, 0.22), nasa),
+        ("astronaut_landscape_offcentre", canvas(a, 448, 256, -40, -30, 0.62), nasa),
+        ("camera", cv2.resize(s["camera"], (256, 256), interpolation=cv2.INTER_AREA), "Lav Varshney, CC0 (scikit-image `camera`)"),
+        ("chelsea_cat", cv2.resize(s["chelsea"], (300, 225), interpolation=cv2.INTER_AREA), "Stefan van der Walt, CC0 (scikit-image `chelsea`)"),
+        ("coffee", cv2.resize(s["coffee"], (300, 200), interpolation=cv2.INTER_AREA), "Rachel Michetti, CC0 (scikit-image `coffee`)"),
+        ("rocket", cv2.resize(s["rocket"], (214, 142), interpolation=cv2.INTER_AREA), "NASA/SpaceX? see README; scikit-image `rocket`, public domain"),
+        ("flat_grey", np.full((64, 96, 3), 128, np.uint8), "generated (no content)"),
+    ]
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Goldens.
+
+
+def write_png(path, rgb):
+    ok = cv2.imwrite(path, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    assert ok, path
+
+
+def read_png(path):
+    return cv2.cvtColor(cv2.imread(path, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+
+
+def r6(v):
+    return [float(f"{x:.7g}") for x in np.asarray(v, np.float64).reshape(-1)]
+
+
+WHOLE = {"cx": 0.5, "cy": 0.5, "w": 1.0, "h": 1.0, "rotation": 0.0}
+ASTRO_FACE = {"cx": 0.43, "cy": 0.26, "w": 0.3, "h": 0.3, "rotation": 0.12}
+
+
+def crops_goldens(out, pics):
+    """MediaPipe crops: name -> (picture, rect, size, border)."""
+    os.makedirs(os.path.join(out, "crops"), exist_ok=True)
+    cases = [
+        ("letterbox_wide_128", "astronaut_small_in_wide", WHOLE, (128, 128), "zero", True),
+        ("letterbox_tall_192", "astronaut_tiny_in_tall", WHOLE, (192, 192), "zero", True),
+        ("face_rotated_192", "astronaut_384", ASTRO_FACE, (192, 192), "replicate", False),
+        ("face_outside_192", "astronaut_face_crop", {"cx": 0.1, "cy": 0.9, "w": 0.9, "h": 0.7, "rotation": -0.6}, (192, 192), "replicate", False),
+        ("selfie_256", "astronaut_landscape_offcentre", WHOLE, (256, 256), "zero", False),
+        ("zero_rotated_64", "camera", {"cx": 0.6, "cy": 0.4, "w": 1.3, "h": 0.9, "rotation": 2.5}, (64, 48), "zero", False),
+    ]
+    meta = []
+    for name, pic, roi, size, border, keep in cases:
+        img = pics[pic]
+        roi = dict(roi)
+        if keep:
+            # What PadRoi does for the letterbox: the rect widened to the tensor's aspect.
+            h, w = img.shape[:2]
+            side = max(w, h)
+            roi["w"], roi["h"] = side / w, side / h
+        crop = mp_crop(img, roi, size, border)
+        write_png(os.path.join(out, "crops", f"{name}.png"), crop)
+        meta.append({"name": name, "image": pic, "roi": roi, "width": size[0], "height": size[1], "border": border})
+    return meta
+
+
+def model_goldens(pics):
+    a = pics["astronaut_384"]
+    res = {}
+    # Short range on the letterboxed picture.
+    logits_reg = mp_model(
+        a, WHOLE, (128, 128), -1.0, 1.0, "zero", True, "mediapipe/modules/face_detection/face_detection_short_range.tflite", 2
+    )
+    res["short_range"] = detector_golden(pics["astronaut_384"], "astronaut_384", logits_reg, 896)
+    logits_reg = mp_model(
+        a, WHOLE, (192, 192), -1.0, 1.0, "zero", True, "mediapipe/modules/face_detection/face_detection_full_range_sparse.tflite", 2
+    )
+    res["full_range"] = detector_golden(pics["astronaut_384"], "astronaut_384", logits_reg, 2304)
+    outs = mp_model(
+        a, ASTRO_FACE, (192, 192), 0.0, 1.0, "replicate", False, "mediapipe/modules/face_landmark/face_landmark_with_attention.tflite", 7
+    )
+    names = ["mesh", "lips", "left_eye", "right_eye", "left_iris", "right_iris", "face_flag"]
+    res["landmarks"] = {
+        "image": "astronaut_384",
+        "roi": ASTRO_FACE,
+        "outputs": {n: r6(o) for n, o in zip(names, outs)},
+    }
+    pic = "astronaut_landscape_offcentre"
+    (mask,) = mp_model(
+        pics[pic], WHOLE, (256, 256), 0.0, 1.0, "zero", False, "mediapipe/modules/selfie_segmentation/selfie_segmentation.tflite", 1
+    )
+    mask = mask.reshape(256, 256)
+    res["selfie"] = {"image": pic, "stride": 4, "mask": r6(mask[::4, ::4])}
+    return res
+
+
+def detector_golden(img, name, outs, n):
+    # Output order: regressors (16 per anchor) then classificators.
+    reg, cls = (outs[0], outs[1]) if outs[0].size == n * 16 else (outs[1], outs[0])
+    reg = reg.reshape(n, 16)
+    best = [int(i) for i in np.argsort(-cls)[:24]]
+    return {
+        "image": name,
+        "logits": r6(cls),
+        "best_anchors": best,
+        "best_regressors": [r6(reg[i]) for i in best],
+    }
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    g = sub.add_parser("goldens")
+    g.add_argument("--out", required=True)
+    args = ap.parse_args()
+    assert mp.__version__ == "0.10.21", mp.__version__
+    assert np.__version__ == "1.26.4", np.__version__
+    out = args.out
+    os.makedirs(os.path.join(out, "images"), exist_ok=True)
+    pics = {}
+    rows = []
+    for name, img, note in test_pictures():
+        path = os.path.join(out, "images", f"{name}.png")
+        write_png(path, img)
+        pics[name] = read_png(path)
+        assert np.array_equal(pics[name], img)
+        rows.append((name, img.shape[1], img.shape[0], note))
+    with open(os.path.join(out, "images", "README.md"), "w") as f:
+        f.write("# Test pictures\n\nWritten by `tools/reference/face_reference.py`.\n\n| file | size | source and licence |\n|---|---|---|\n")
+        for name, w, h, note in rows:
+            f.write(f"| `{name}.png` | {w}x{h} | {note} |\n")
+    crops = crops_goldens(out, pics)
+    models = model_goldens(pics)
+    with open(os.path.join(out, "models.json"), "w") as f:
+        json.dump({"crops": crops, "models": models}, f)
+    print("wrote", out)
+
+
+if __name__ == "__main__":
+    main()
