@@ -6,6 +6,8 @@ pub mod detection_net;
 pub mod error;
 pub mod kernels;
 pub mod layers;
+pub mod mesh_net;
+pub mod selfie_net;
 pub mod simd;
 pub mod tensor;
 pub mod warp;
