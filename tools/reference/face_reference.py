@@ -293,6 +293,86 @@ def detector_golden(img, name, outs, n):
     }
 
 
+def detections_json(res):
+    out = []
+    for d in res.detections or []:
+        b = d.location_data.relative_bounding_box
+        out.append(
+            {
+                "score": float(d.score[0]),
+                "box": [b.xmin, b.ymin, b.width, b.height],
+                "keypoints": [[k.x, k.y] for k in d.location_data.relative_keypoints],
+            }
+        )
+    return out
+
+
+def landmarks_json(res):
+    return [[[p.x, p.y, p.z] for p in f.landmark] for f in (res.multi_face_landmarks or [])]
+
+
+MAX_FACES = 4
+
+
+def pipeline_goldens(out, pics):
+    os.makedirs(os.path.join(out, "masks"), exist_ok=True)
+    fd0 = mp.solutions.face_detection.FaceDetection(model_selection=0, min_detection_confidence=0.5)
+    fd1 = mp.solutions.face_detection.FaceDetection(model_selection=1, min_detection_confidence=0.5)
+    fm = mp.solutions.face_mesh.FaceMesh(
+        static_image_mode=True, max_num_faces=MAX_FACES, refine_landmarks=True, min_detection_confidence=0.5
+    )
+    seg = mp.solutions.selfie_segmentation.SelfieSegmentation(model_selection=0)
+    res = {"max_faces": MAX_FACES, "pictures": {}}
+    for name, img in pics.items():
+        entry = {
+            "width": img.shape[1],
+            "height": img.shape[0],
+            "short_range": detections_json(fd0.process(img)),
+            "full_range": detections_json(fd1.process(img)),
+            "mesh": landmarks_json(fm.process(img)),
+        }
+        mask = seg.process(img).segmentation_mask
+        m8 = np.clip(np.round(mask * 255.0), 0, 255).astype(np.uint8)
+        cv2.imwrite(os.path.join(out, "masks", f"{name}.png"), m8, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+        entry["mask_mean"] = float(mask.mean())
+        res["pictures"][name] = entry
+        print(name, len(entry["short_range"]), len(entry["full_range"]), len(entry["mesh"]))
+    return res
+
+
+def video_goldens(out, pics):
+    """A synthetic clip: crops of a test picture along a smooth path (MediaPipe's own crops,
+    which the Rust side reproduces bit for bit), with two black frames that make the tracker
+    lose the face and detect again."""
+    base = "astronaut_384"
+    img = pics[base]
+    size = (224, 224)
+    rects = []
+    for t in range(14):
+        if t in (8, 9):
+            rects.append({"cx": 3.0, "cy": 3.0, "w": 0.5, "h": 0.5, "rotation": 0.0})
+            continue
+        a = t / 13.0
+        rects.append(
+            {
+                "cx": 0.45 + 0.03 * np.sin(2.1 * a * np.pi),
+                "cy": 0.33 + 0.02 * np.cos(1.7 * a * np.pi),
+                "w": 0.62 - 0.08 * a,
+                "h": 0.62 - 0.08 * a,
+                "rotation": 0.25 * np.sin(1.3 * a * np.pi),
+            }
+        )
+    rects = [{k: float(np.float32(v)) for k, v in r.items()} for r in rects]
+    frames = [mp_crop(img, r, size, "zero") for r in rects]
+    fm = mp.solutions.face_mesh.FaceMesh(static_image_mode=False, max_num_faces=1, refine_landmarks=True)
+    lms = []
+    for f in frames:
+        got = landmarks_json(fm.process(f))
+        lms.append(got[0] if got else None)
+    print("video: faces in", sum(x is not None for x in lms), "of", len(lms), "frames")
+    return {"image": base, "width": size[0], "height": size[1], "rects": rects, "landmarks": lms}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -319,6 +399,10 @@ def main():
     models = model_goldens(pics)
     with open(os.path.join(out, "models.json"), "w") as f:
         json.dump({"crops": crops, "models": models}, f)
+    with open(os.path.join(out, "pipeline.json"), "w") as f:
+        json.dump(pipeline_goldens(out, pics), f)
+    with open(os.path.join(out, "video.json"), "w") as f:
+        json.dump(video_goldens(out, pics), f)
     print("wrote", out)
 
 

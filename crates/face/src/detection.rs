@@ -77,8 +77,10 @@ pub struct FaceDetector {
     net: Net,
     anchors: Vec<Anchor>,
     size: usize,
-    /// Detections below this score are dropped before suppression (MediaPipe Python's
-    /// `min_detection_confidence`, default 0.5).
+    /// Detections below this score are dropped before suppression: the graphs' defaults,
+    /// 0.5 for short range and 0.6 for full range. (MediaPipe 0.10.21's Python
+    /// `FaceDetection` ignores its `min_detection_confidence`: measured, the graph defaults
+    /// apply whatever it is set to.)
     pub min_score: f32,
 }
 
@@ -99,23 +101,25 @@ impl FaceDetector {
 
     /// The detector with weights from a file (refused unless every key and shape matches).
     pub fn from_weights(model: DetectorModel, file: WeightsFile) -> Result<Self, FaceError> {
-        let (net, anchors, size) = match model {
+        let (net, anchors, size, min_score) = match model {
             DetectorModel::ShortRange => (
                 Net::Short(file.build(model.name(), ShortRangeNet::new)?),
                 anchors::short_range(),
                 ShortRangeNet::INPUT,
+                0.5,
             ),
             DetectorModel::FullRange => (
                 Net::Full(file.build(model.name(), FullRangeNet::new)?),
                 anchors::full_range(),
                 FullRangeNet::INPUT,
+                0.6,
             ),
         };
         Ok(FaceDetector {
             net,
             anchors,
             size,
-            min_score: 0.5,
+            min_score,
         })
     }
 
