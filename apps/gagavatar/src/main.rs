@@ -4,6 +4,7 @@
 mod animate;
 mod cmd_bench;
 mod cmd_demo;
+mod cmd_face;
 mod cmd_flame;
 mod cmd_model;
 mod cmd_orbit;
@@ -48,6 +49,8 @@ enum Command {
     Orbit(cmd_orbit::OrbitArgs),
     /// Write the avatar's Gaussians as a standard 3DGS .ply (plus the feature channels).
     ExportPly(cmd_orbit::ExportPlyArgs),
+    /// Find faces in a photo: boxes, keypoints, 478 landmarks, and the person matte.
+    Face(cmd_face::FaceArgs),
     /// Benchmarks of the hot paths on this machine.
     #[command(subcommand)]
     Bench(cmd_bench::BenchCmd),
@@ -117,6 +120,7 @@ fn main() {
         Command::Reenact(args) => cmd_reenact::run(args),
         Command::Orbit(args) => cmd_orbit::run_orbit(args),
         Command::ExportPly(args) => cmd_orbit::run_export_ply(args),
+        Command::Face(args) => cmd_face::run(args),
         Command::Bench(cmd) => cmd_bench::run(cmd),
         Command::SynthData(args) => cmd_synth::run(args),
         Command::Train(args) => cmd_train::run_train(args),

@@ -57,14 +57,32 @@ mod tests {
     fn counts_and_order() {
         let a = short_range();
         assert_eq!(a.len(), 896);
-        assert_eq!(a[0], Anchor { x: 0.5 / 16.0, y: 0.5 / 16.0 });
+        assert_eq!(
+            a[0],
+            Anchor {
+                x: 0.5 / 16.0,
+                y: 0.5 / 16.0
+            }
+        );
         assert_eq!(a[1], a[0]);
         assert_eq!(a[2].x, 1.5 / 16.0);
-        assert_eq!(a[512], Anchor { x: 0.5 / 8.0, y: 0.5 / 8.0 });
+        assert_eq!(
+            a[512],
+            Anchor {
+                x: 0.5 / 8.0,
+                y: 0.5 / 8.0
+            }
+        );
         assert_eq!(a[517], a[512]);
         assert_eq!(a[518].x, 1.5 / 8.0);
         let f = full_range();
         assert_eq!(f.len(), 2304);
-        assert_eq!(f[48], Anchor { x: 0.5 / 48.0, y: 1.5 / 48.0 });
+        assert_eq!(
+            f[48],
+            Anchor {
+                x: 0.5 / 48.0,
+                y: 1.5 / 48.0
+            }
+        );
     }
 }

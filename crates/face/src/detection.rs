@@ -93,8 +93,14 @@ impl FaceDetector {
     /// The detector with the weights shipped in this crate.
     pub fn new(model: DetectorModel) -> Result<Self, FaceError> {
         let (bytes, label) = match model {
-            DetectorModel::ShortRange => (bundled::FACE_DETECTION_SHORT_RANGE, "face_detection_short_range.safetensors"),
-            DetectorModel::FullRange => (bundled::FACE_DETECTION_FULL_RANGE, "face_detection_full_range.safetensors"),
+            DetectorModel::ShortRange => (
+                bundled::FACE_DETECTION_SHORT_RANGE,
+                "face_detection_short_range.safetensors",
+            ),
+            DetectorModel::FullRange => (
+                bundled::FACE_DETECTION_FULL_RANGE,
+                "face_detection_full_range.safetensors",
+            ),
         };
         Self::from_weights(model, WeightsFile::from_bytes(bytes, label)?)
     }
@@ -154,7 +160,12 @@ impl FaceDetector {
 
 /// Boxes and keypoints from the raw outputs (`TensorsToDetectionsCalculator`, reverse output
 /// order: x before y), in tensor-normalised coordinates, in anchor order.
-pub fn decode(raw: &RawDetections, anchors: &[Anchor], scale: f32, min_score: f32) -> Vec<Detection> {
+pub fn decode(
+    raw: &RawDetections,
+    anchors: &[Anchor],
+    scale: f32,
+    min_score: f32,
+) -> Vec<Detection> {
     let mut out = Vec::new();
     for (i, a) in anchors.iter().enumerate() {
         let r = &raw.regressors[i * 16..(i + 1) * 16];
@@ -172,7 +183,8 @@ pub fn decode(raw: &RawDetections, anchors: &[Anchor], scale: f32, min_score: f3
         if !(width >= 0.0 && height >= 0.0) {
             continue;
         }
-        let keypoints = std::array::from_fn(|k| [r[4 + 2 * k] / scale + a.x, r[5 + 2 * k] / scale + a.y]);
+        let keypoints =
+            std::array::from_fn(|k| [r[4 + 2 * k] / scale + a.x, r[5 + 2 * k] / scale + a.y]);
         out.push(Detection {
             score,
             xmin,
@@ -190,7 +202,13 @@ pub fn iou(a: &Detection, b: &Detection) -> f32 {
     let (ax1, ay1) = (a.xmin + a.width, a.ymin + a.height);
     let (bx1, by1) = (b.xmin + b.width, b.ymin + b.height);
     let empty = |x0: f32, y0: f32, x1: f32, y1: f32| x0 > x1 || y0 > y1;
-    if empty(a.xmin, a.ymin, ax1, ay1) || empty(b.xmin, b.ymin, bx1, by1) || bx1 < a.xmin || ax1 < b.xmin || by1 < a.ymin || ay1 < b.ymin {
+    if empty(a.xmin, a.ymin, ax1, ay1)
+        || empty(b.xmin, b.ymin, bx1, by1)
+        || bx1 < a.xmin
+        || ax1 < b.xmin
+        || by1 < a.ymin
+        || ay1 < b.ymin
+    {
         return 0.0;
     }
     let (ix0, iy0) = (a.xmin.max(b.xmin), a.ymin.max(b.ymin));
@@ -214,10 +232,13 @@ pub fn weighted_nms(mut dets: Vec<Detection>, threshold: f32) -> Vec<Detection> 
     let mut remaining = dets;
     while !remaining.is_empty() {
         let top = remaining[0].clone();
-        let (cluster, rest): (Vec<Detection>, Vec<Detection>) = remaining.into_iter().partition(|d| iou(d, &top) > threshold);
+        let (cluster, rest): (Vec<Detection>, Vec<Detection>) = remaining
+            .into_iter()
+            .partition(|d| iou(d, &top) > threshold);
         let mut merged = top;
         if !cluster.is_empty() {
-            let (mut x0, mut y0, mut x1, mut y1, mut total) = (0.0f32, 0.0f32, 0.0f32, 0.0f32, 0.0f32);
+            let (mut x0, mut y0, mut x1, mut y1, mut total) =
+                (0.0f32, 0.0f32, 0.0f32, 0.0f32, 0.0f32);
             let mut kps = [[0.0f32; 2]; 6];
             for c in &cluster {
                 total += c.score;
@@ -262,7 +283,12 @@ pub fn project(d: &Detection, roi: &RotatedRect, w: u32, h: u32) -> Detection {
     ];
     let pr = |x: f32, y: f32| [x * m[0] + y * m[1] + m[2], x * m[3] + y * m[4] + m[5]];
     let (x1, y1) = (d.xmin + d.width, d.ymin + d.height);
-    let corners = [pr(d.xmin, d.ymin), pr(x1, d.ymin), pr(x1, y1), pr(d.xmin, y1)];
+    let corners = [
+        pr(d.xmin, d.ymin),
+        pr(x1, d.ymin),
+        pr(x1, y1),
+        pr(d.xmin, y1),
+    ];
     let (mut lx, mut ly, mut rx, mut ry) = (f32::MAX, f32::MAX, f32::MIN, f32::MIN);
     for p in corners {
         lx = lx.min(p[0]);
@@ -297,12 +323,20 @@ mod tests {
 
     #[test]
     fn weighted_nms_merges_by_score() {
-        let d = vec![det(0.6, 0.1, 0.1, 0.2), det(0.9, 0.12, 0.1, 0.2), det(0.8, 0.7, 0.7, 0.1)];
+        let d = vec![
+            det(0.6, 0.1, 0.1, 0.2),
+            det(0.9, 0.12, 0.1, 0.2),
+            det(0.8, 0.7, 0.7, 0.1),
+        ];
         let out = weighted_nms(d, 0.3);
         assert_eq!(out.len(), 2);
         assert_eq!(out[0].score, 0.9);
         let want = (0.1 * 0.6 + 0.12 * 0.9) / 1.5;
-        assert!((out[0].xmin - want).abs() < 1e-6, "{} vs {want}", out[0].xmin);
+        assert!(
+            (out[0].xmin - want).abs() < 1e-6,
+            "{} vs {want}",
+            out[0].xmin
+        );
         assert_eq!(out[1].score, 0.8);
         assert_eq!(out[1].xmin, 0.7);
     }
@@ -322,7 +356,13 @@ mod tests {
         let roi = warp::letterbox_rect(200, 100);
         let d = det(1.0, 0.0, 0.25, 0.5);
         let p = project(&d, &roi, 200, 100);
-        assert!((p.ymin - 0.0).abs() < 1e-6 && (p.height - 1.0).abs() < 1e-6, "{p:?}");
-        assert!((p.xmin - 0.0).abs() < 1e-6 && (p.width - 0.5).abs() < 1e-6, "{p:?}");
+        assert!(
+            (p.ymin - 0.0).abs() < 1e-6 && (p.height - 1.0).abs() < 1e-6,
+            "{p:?}"
+        );
+        assert!(
+            (p.xmin - 0.0).abs() < 1e-6 && (p.width - 0.5).abs() < 1e-6,
+            "{p:?}"
+        );
     }
 }

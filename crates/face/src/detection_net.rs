@@ -68,7 +68,14 @@ impl ShortRangeNet {
                 } else {
                     format!("depthwise_conv2d_{i}")
                 };
-                BlazeBlock::new(&vb, (&dw, &format!("conv2d_{}", i + 1)), cin, cout, s, Act::Relu)
+                BlazeBlock::new(
+                    &vb,
+                    (&dw, &format!("conv2d_{}", i + 1)),
+                    cin,
+                    cout,
+                    s,
+                    Act::Relu,
+                )
             })
             .collect::<Result<Vec<_>>>()?;
         Ok(ShortRangeNet {
@@ -84,20 +91,19 @@ impl ShortRangeNet {
     /// `x`: 128x128x3 in [-1, 1].
     pub fn forward(&self, x: &Nhwc) -> RawDetections {
         assert_eq!((x.h, x.w, x.c), (128, 128, 3), "short-range detector input");
-        let mut h = self.stem.forward(x, &Act::Relu);
-        let mut tap = None;
-        for (i, b) in self.blocks.iter().enumerate() {
-            h = b.forward(&h);
-            if i == SHORT_TAP {
-                tap = Some(h.clone());
-            }
+        let mut tap = self.stem.forward(x, &Act::Relu);
+        for b in &self.blocks[..=SHORT_TAP] {
+            tap = b.forward(&tap);
         }
-        let tap = tap.unwrap_or_else(|| h.clone());
+        let mut h = self.blocks[SHORT_TAP + 1].forward(&tap);
+        for b in &self.blocks[SHORT_TAP + 2..] {
+            h = b.forward(&h);
+        }
         // NHWC reshapes: anchors ordered by row, column, then anchor within the cell.
-        let mut logits = self.cls8.forward(&tap, &Act::None).data;
-        logits.extend(self.cls16.forward(&h, &Act::None).data);
-        let mut regressors = self.reg8.forward(&tap, &Act::None).data;
-        regressors.extend(self.reg16.forward(&h, &Act::None).data);
+        let mut logits = self.cls8.forward(&tap, &Act::None).into_vec();
+        logits.extend(self.cls16.forward(&h, &Act::None).data.iter());
+        let mut regressors = self.reg8.forward(&tap, &Act::None).into_vec();
+        regressors.extend(self.reg16.forward(&h, &Act::None).data.iter());
         RawDetections { regressors, logits }
     }
 }
@@ -117,7 +123,15 @@ struct DoubleBlock {
 impl DoubleBlock {
     /// `i`: the index of the first depthwise layer (`depthwise_conv2d_{i}`, the second is
     /// `i + 1`); `j`: the index of the first 1x1 layer (`conv2d_{j}`, then `j + 1`).
-    fn new(vb: &VarBuilder, i: usize, j: usize, c: usize, mid: usize, cout: usize, stride: usize) -> Result<Self> {
+    fn new(
+        vb: &VarBuilder,
+        i: usize,
+        j: usize,
+        c: usize,
+        mid: usize,
+        cout: usize,
+        stride: usize,
+    ) -> Result<Self> {
         let dw = |n: usize| {
             if n == 0 {
                 "depthwise_conv2d".to_owned()
@@ -138,7 +152,8 @@ impl DoubleBlock {
         let h = self.dw1.forward(x, &Act::None);
         let h = self.pw1.forward(&h, &Act::Relu);
         let h = self.dw2.forward(&h, &Act::None);
-        self.pw2.forward_res(&h, self.residual.then_some(x), &Act::Relu)
+        self.pw2
+            .forward_res(&h, self.residual.then_some(x), &Act::Relu)
     }
 }
 
@@ -219,15 +234,16 @@ impl FullRangeNet {
     /// `x`: 192x192x3 in [-1, 1].
     pub fn forward(&self, x: &Nhwc) -> RawDetections {
         assert_eq!((x.h, x.w, x.c), (192, 192, 3), "full-range detector input");
-        let mut h = self.stem.forward(x, &Act::Relu);
-        let mut taps = Vec::new();
-        for (i, b) in self.down.iter().enumerate() {
-            h = b.forward(&h);
-            if matches!(i, 4 | 7 | 10) {
-                taps.push(h.clone());
-            }
-        }
-        let (t48, t24, t12) = (&taps[0], &taps[1], &taps[2]);
+        // Blocks in sequence from a borrowed input (each range is non-empty).
+        let run = |blocks: &[DoubleBlock], x: &Nhwc| {
+            let h = blocks[0].forward(x);
+            blocks[1..].iter().fold(h, |h, b| b.forward(&h))
+        };
+        let stem = self.stem.forward(x, &Act::Relu);
+        let t48 = &run(&self.down[..5], &stem);
+        let t24 = &run(&self.down[5..8], t48);
+        let t12 = &run(&self.down[8..11], t24);
+        let h = run(&self.down[11..], t12);
         let up = |small: &Nhwc, conv: &Conv2d, lateral: &Conv2d, big: &Nhwc| {
             let s = conv.forward(small, &Act::Relu);
             let s = kernels::resize_bilinear(&s, big.h, big.w);
@@ -251,8 +267,8 @@ impl FullRangeNet {
         let r = self.reg.forward(&h, &Act::None);
         let r = kernels::depth_to_space2(&self.reg_dw.forward(&r, &Act::None));
         RawDetections {
-            regressors: r.data,
-            logits: c.data,
+            regressors: r.into_vec(),
+            logits: c.into_vec(),
         }
     }
 }

@@ -22,8 +22,12 @@ pub const NUM_LANDMARKS: usize = 478;
 /// Landmark crop size.
 const CROP: usize = 192;
 /// Mesh points whose mean depth the iris points take (lower and upper contour of each eye).
-const LEFT_IRIS_DEPTH: [usize; 16] = [33, 7, 163, 144, 145, 153, 154, 155, 133, 246, 161, 160, 159, 158, 157, 173];
-const RIGHT_IRIS_DEPTH: [usize; 16] = [263, 249, 390, 373, 374, 380, 381, 382, 362, 466, 388, 387, 386, 385, 384, 398];
+const LEFT_IRIS_DEPTH: [usize; 16] = [
+    33, 7, 163, 144, 145, 153, 154, 155, 133, 246, 161, 160, 159, 158, 157, 173,
+];
+const RIGHT_IRIS_DEPTH: [usize; 16] = [
+    263, 249, 390, 373, 374, 380, 381, 382, 362, 466, 388, 387, 386, 385, 384, 398,
+];
 
 /// 478 landmarks in normalised image coordinates: x, y in 0..1 of the width and height, z in
 /// the same unit as x (negative toward the camera). Points 468 and 473 are the iris centres
@@ -49,7 +53,10 @@ impl Face {
     /// width, y times the height, z times the width.
     pub fn landmarks_pixels(&self, w: u32, h: u32) -> Vec<[f32; 3]> {
         let (w, h) = (w as f32, h as f32);
-        self.landmarks.iter().map(|p| [p[0] * w, p[1] * h, p[2] * w]).collect()
+        self.landmarks
+            .iter()
+            .map(|p| [p[0] * w, p[1] * h, p[2] * w])
+            .collect()
     }
 }
 
@@ -82,7 +89,8 @@ impl FaceLandmarker {
     pub fn raw(&self, img: &RgbImage, roi: &NormRect) -> MeshOutputs {
         let r = roi.to_pixels(img.width(), img.height());
         let crop = warp::warp_u8(img, &r, CROP, CROP, Border::Replicate);
-        self.net.forward(&warp::to_tensor(&crop, CROP, CROP, 0.0, 1.0))
+        self.net
+            .forward(&warp::to_tensor(&crop, CROP, CROP, 0.0, 1.0))
     }
 
     /// Presence probability and, when the face is present, the 478 normalised landmarks.
@@ -102,14 +110,25 @@ impl FaceLandmarker {
 /// with the mean depth of their eye's contour.
 pub fn refine(out: &MeshOutputs) -> Landmarks {
     let s = CROP as f32;
-    let mut lm: Landmarks = out.mesh.chunks_exact(3).map(|p| [p[0] / s, p[1] / s, p[2] / s]).collect();
-    for (idx, pts) in [(&LIPS[..], &out.lips), (&LEFT_EYE[..], &out.left_eye), (&RIGHT_EYE[..], &out.right_eye)] {
+    let mut lm: Landmarks = out
+        .mesh
+        .chunks_exact(3)
+        .map(|p| [p[0] / s, p[1] / s, p[2] / s])
+        .collect();
+    for (idx, pts) in [
+        (&LIPS[..], &out.lips),
+        (&LEFT_EYE[..], &out.left_eye),
+        (&RIGHT_EYE[..], &out.right_eye),
+    ] {
         for (&i, p) in idx.iter().zip(pts.chunks_exact(2)) {
             lm[i][0] = p[0] / s;
             lm[i][1] = p[1] / s;
         }
     }
-    for (pts, depth) in [(&out.left_iris, &LEFT_IRIS_DEPTH), (&out.right_iris, &RIGHT_IRIS_DEPTH)] {
+    for (pts, depth) in [
+        (&out.left_iris, &LEFT_IRIS_DEPTH),
+        (&out.right_iris, &RIGHT_IRIS_DEPTH),
+    ] {
         let mut z = 0.0f32;
         for &i in depth.iter() {
             z += lm[i][2];
@@ -130,7 +149,11 @@ pub fn project(lm: &[[f32; 3]], roi: &NormRect) -> Landmarks {
             let (x, y) = (p[0] - 0.5f32, p[1] - 0.5f32);
             let nx = c * x - s * y;
             let ny = s * x + c * y;
-            [nx * roi.width + roi.x_center, ny * roi.height + roi.y_center, p[2] * roi.width]
+            [
+                nx * roi.width + roi.x_center,
+                ny * roi.height + roi.y_center,
+                p[2] * roi.width,
+            ]
         })
         .collect()
 }
@@ -160,7 +183,12 @@ impl FaceMesh {
     }
 
     /// Landmarks for given detections (e.g. from the full-range detector).
-    pub fn landmark_detections(&self, img: &RgbImage, dets: Vec<Detection>, max_faces: usize) -> Vec<Face> {
+    pub fn landmark_detections(
+        &self,
+        img: &RgbImage,
+        dets: Vec<Detection>,
+        max_faces: usize,
+    ) -> Vec<Face> {
         let (w, h) = (img.width(), img.height());
         dets.into_iter()
             .take(max_faces)
@@ -194,7 +222,10 @@ impl FaceTracker {
     }
 
     pub fn with_models(mesh: FaceMesh) -> Self {
-        FaceTracker { mesh, previous: None }
+        FaceTracker {
+            mesh,
+            previous: None,
+        }
     }
 
     /// The face in the next frame, or `None` when there is none (the next frame then runs

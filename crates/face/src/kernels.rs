@@ -10,7 +10,6 @@
 
 use crate::simd::{dispatch, Lanes, W};
 use crate::tensor::Nhwc;
-use rayon::prelude::*;
 
 /// Multiply-adds above which an op splits its rows over threads.
 const PARALLEL_MACS: usize = 400_000;
@@ -65,8 +64,8 @@ impl Act {
     }
 }
 
-/// Runs `f(first_row, rows_slice)` over row bands of `out` (rows of `row_len` values), in
-/// parallel when the op is big enough to pay for it.
+/// Runs `f(first_row, rows_slice)` over row bands of `out` (rows of `row_len` values), split
+/// over the face thread pool when the op is big enough to pay for it.
 fn for_rows(
     out: &mut [f32],
     rows: usize,
@@ -74,16 +73,22 @@ fn for_rows(
     macs: usize,
     f: impl Fn(usize, &mut [f32]) + Sync,
 ) {
-    let threads = rayon::current_num_threads();
+    let threads = crate::pool::threads();
     if threads <= 1 || macs < PARALLEL_MACS || rows < 2 || row_len == 0 {
         f(0, out);
         return;
     }
     let parts = threads.min(rows);
     let per = rows.div_ceil(parts);
-    out.par_chunks_mut(per * row_len)
-        .enumerate()
-        .for_each(|(i, chunk)| f(i * per, chunk));
+    let bands: Vec<std::sync::Mutex<&mut [f32]>> = out
+        .chunks_mut(per * row_len)
+        .map(std::sync::Mutex::new)
+        .collect();
+    crate::pool::run(bands.len(), &|i| {
+        if let Ok(mut band) = bands[i].lock() {
+            f(i * per, &mut band);
+        }
+    });
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -134,17 +139,28 @@ impl Packed {
     }
 }
 
+/// What a 1x1 convolution adds before its activation: nothing, a map of the same pixels, or the
+/// 2x2 max pool of a map twice the size (a stride-2 BlazeBlock's skip). Either has at most the
+/// output's channels; the rest count as zero (TFLite's channel padding before the add).
+#[derive(Clone, Copy)]
+pub enum Residual<'a> {
+    None,
+    Same(&'a Nhwc),
+    MaxPool2(&'a Nhwc),
+}
+
 /// `out[p][o] = act(bias[o] + sum_k x[p][k] w[o][k] + res[p][o])` for the pixels of `x`
-/// (`rows` rows of `k` values, `xs` apart); `res` has `cr <= cout` channels (the rest count as
-/// zero: TFLite's channel padding before the residual add).
+/// (rows of `k` values, `xs` apart), `ow` output pixels per row.
 struct Mm<'a> {
     x: &'a [f32],
     xs: usize,
     pk: &'a Packed,
-    res: Option<(&'a [f32], usize)>,
+    res: Residual<'a>,
+    ow: usize,
     act: &'a Act,
 }
 
+#[inline(always)]
 fn mm_rows<L: Lanes>(m: &Mm, p0: usize, out: &mut [f32]) {
     let rows = out.len() / m.pk.cout;
     match m.pk.nb {
@@ -158,7 +174,12 @@ fn mm_rows<L: Lanes>(m: &Mm, p0: usize, out: &mut [f32]) {
 dispatch!(fn mm_rows_d(m: &Mm, p0: usize, out: &mut [f32]) = mm_rows);
 
 #[inline(always)]
-fn mm_nb<L: Lanes, const NB: usize, const MR: usize>(m: &Mm, p0: usize, rows: usize, out: &mut [f32]) {
+fn mm_nb<L: Lanes, const NB: usize, const MR: usize>(
+    m: &Mm,
+    p0: usize,
+    rows: usize,
+    out: &mut [f32],
+) {
     let mut r = 0;
     while r + MR <= rows {
         mm_tile::<L, NB, MR>(m, p0 + r, r, out);
@@ -171,7 +192,12 @@ fn mm_nb<L: Lanes, const NB: usize, const MR: usize>(m: &Mm, p0: usize, rows: us
 }
 
 #[inline(always)]
-fn mm_tile<L: Lanes, const NB: usize, const MR: usize>(m: &Mm, p: usize, r: usize, out: &mut [f32]) {
+fn mm_tile<L: Lanes, const NB: usize, const MR: usize>(
+    m: &Mm,
+    p: usize,
+    r: usize,
+    out: &mut [f32],
+) {
     let pk = m.pk;
     let (k, cout, gw) = (pk.k, pk.cout, NB * W);
     debug_assert!((p + MR - 1) * m.xs + k <= m.x.len());
@@ -180,7 +206,8 @@ fn mm_tile<L: Lanes, const NB: usize, const MR: usize>(m: &Mm, p: usize, r: usiz
     for g in 0..pk.groups {
         let mut acc = [[L::zero(); NB]; MR];
         // SAFETY: bias holds groups * gw values.
-        let b: [L; NB] = std::array::from_fn(|j| unsafe { L::load(pk.bias.as_ptr().add(g * gw + j * W)) });
+        let b: [L; NB] =
+            std::array::from_fn(|j| unsafe { L::load(pk.bias.as_ptr().add(g * gw + j * W)) });
         for a in acc.iter_mut() {
             *a = b;
         }
@@ -204,11 +231,45 @@ fn mm_tile<L: Lanes, const NB: usize, const MR: usize>(m: &Mm, p: usize, r: usiz
                 }
                 let n = (cout - ch).min(W);
                 let mut v = v;
-                if let Some((res, cr)) = m.res {
-                    if ch < cr {
-                        // SAFETY: pixel p + i of the residual, channels ch..ch+n clipped to cr.
-                        let rv = unsafe { L::load_n(res.as_ptr().add((p + i) * cr + ch), (cr - ch).min(W)) };
-                        v = v.add(rv);
+                match m.res {
+                    Residual::None => {}
+                    Residual::Same(r) => {
+                        if ch < r.c {
+                            // SAFETY: pixel p + i of the residual (same pixels as the output),
+                            // channels ch.. clipped to its count.
+                            let rv = unsafe {
+                                L::load_n(
+                                    r.data.as_ptr().add((p + i) * r.c + ch),
+                                    (r.c - ch).min(W),
+                                )
+                            };
+                            v = v.add(rv);
+                        }
+                    }
+                    Residual::MaxPool2(r) => {
+                        if ch < r.c {
+                            let (oy, ox) = ((p + i) / m.ow, (p + i) % m.ow);
+                            let nc = (r.c - ch).min(W);
+                            let at = |y: usize, x: usize| {
+                                // SAFETY: (y, x) inside the residual map (checked by the
+                                // callers below), channels ch.. clipped to its count.
+                                unsafe {
+                                    L::load_n(r.data.as_ptr().add((y * r.w + x) * r.c + ch), nc)
+                                }
+                            };
+                            let (y0, x0) = (2 * oy, 2 * ox);
+                            let mut mx = at(y0, x0);
+                            if x0 + 1 < r.w {
+                                mx = mx.max(at(y0, x0 + 1));
+                            }
+                            if y0 + 1 < r.h {
+                                mx = mx.max(at(y0 + 1, x0));
+                                if x0 + 1 < r.w {
+                                    mx = mx.max(at(y0 + 1, x0 + 1));
+                                }
+                            }
+                            v = v.add(mx);
+                        }
                     }
                 }
                 let v = m.act.apply(v, ch);
@@ -219,25 +280,38 @@ fn mm_tile<L: Lanes, const NB: usize, const MR: usize>(m: &Mm, p: usize, r: usiz
     }
 }
 
-/// A 1x1 convolution (stride 1) with fused bias, residual and activation. `res`, when given,
-/// has the same pixels and at most `cout` channels.
-pub fn pointwise(x: &Nhwc, pk: &Packed, res: Option<&Nhwc>, act: &Act) -> Nhwc {
+/// A 1x1 convolution (stride 1) with fused bias, residual and activation.
+pub fn pointwise(x: &Nhwc, pk: &Packed, res: Residual, act: &Act) -> Nhwc {
     assert_eq!(x.c, pk.k, "1x1 convolution input channels");
     let p = x.pixels();
-    if let Some(r) = res {
-        assert_eq!((r.h, r.w), (x.h, x.w), "residual size");
-        assert!(r.c <= pk.cout, "residual channels");
+    match res {
+        Residual::None => {}
+        Residual::Same(r) => {
+            assert_eq!((r.h, r.w), (x.h, x.w), "residual size");
+            assert!(r.c <= pk.cout, "residual channels");
+        }
+        Residual::MaxPool2(r) => {
+            assert_eq!(
+                (r.h.div_ceil(2), r.w.div_ceil(2)),
+                (x.h, x.w),
+                "pooled residual size"
+            );
+            assert!(r.c <= pk.cout, "residual channels");
+        }
     }
-    let mut out = vec![0.0f32; p * pk.cout];
+    let mut out = Nhwc::uninit(x.h, x.w, pk.cout);
     let m = Mm {
         x: &x.data,
         xs: x.c,
         pk,
-        res: res.map(|r| (r.data.as_slice(), r.c)),
+        res,
+        ow: x.w,
         act,
     };
-    for_rows(&mut out, p, pk.cout, p * pk.k * pk.cout, |p0, o| mm_rows_d(&m, p0, o));
-    Nhwc::from_vec(x.h, x.w, pk.cout, out)
+    for_rows(&mut out.data, p, pk.cout, p * pk.k * pk.cout, |p0, o| {
+        mm_rows_d(&m, p0, o)
+    });
+    out
 }
 
 /// Geometry of a full or depthwise convolution: kernel size, stride, the zero padding before
@@ -316,45 +390,53 @@ pub fn conv(x: &Nhwc, pk: &Packed, g: Geom, act: &Act) -> Nhwc {
     let kdim = g.kh * g.kw * x.c;
     assert_eq!(pk.k, kdim, "convolution reduction size");
     let p = g.oh * g.ow;
-    let mut out = vec![0.0f32; p * pk.cout];
-    for_rows(&mut out, g.oh, g.ow * pk.cout, p * kdim * pk.cout, |r0, band| {
-        let rows = band.len() / (g.ow * pk.cout);
-        // Patches of a few rows at a time, so the buffer stays in L2.
-        let step = (32768 / (g.ow * kdim).max(1)).clamp(1, rows.max(1));
-        let mut patch = vec![0.0f32; step * g.ow * kdim];
-        let mut r = 0;
-        while r < rows {
-            let n = step.min(rows - r);
-            let pb = &mut patch[..n * g.ow * kdim];
-            pb.fill(0.0);
-            for dy in 0..n {
-                let oy = r0 + r + dy;
-                let (ky0, ky1, iy0) = Geom::taps(oy, g.stride, g.pad_top, g.kh, x.h);
-                for ox in 0..g.ow {
-                    let (kx0, kx1, ix0) = Geom::taps(ox, g.stride, g.pad_left, g.kw, x.w);
-                    let base = (dy * g.ow + ox) * kdim;
-                    for ky in ky0..ky1 {
-                        let iy = (iy0 + ky as isize) as usize;
-                        let src = (iy * x.w + (ix0 + kx0 as isize) as usize) * x.c;
-                        let dst = base + (ky * g.kw + kx0) * x.c;
-                        let len = (kx1 - kx0) * x.c;
-                        pb[dst..dst + len].copy_from_slice(&x.data[src..src + len]);
+    let mut out = Nhwc::uninit(g.oh, g.ow, pk.cout);
+    for_rows(
+        &mut out.data,
+        g.oh,
+        g.ow * pk.cout,
+        p * kdim * pk.cout,
+        |r0, band| {
+            let rows = band.len() / (g.ow * pk.cout);
+            // Patches of a few rows at a time, so the buffer stays in L2.
+            let step = (32768 / (g.ow * kdim).max(1)).clamp(1, rows.max(1));
+            let mut patch = crate::tensor::take(step * g.ow * kdim);
+            let mut r = 0;
+            while r < rows {
+                let n = step.min(rows - r);
+                let pb = &mut patch[..n * g.ow * kdim];
+                pb.fill(0.0);
+                for dy in 0..n {
+                    let oy = r0 + r + dy;
+                    let (ky0, ky1, iy0) = Geom::taps(oy, g.stride, g.pad_top, g.kh, x.h);
+                    for ox in 0..g.ow {
+                        let (kx0, kx1, ix0) = Geom::taps(ox, g.stride, g.pad_left, g.kw, x.w);
+                        let base = (dy * g.ow + ox) * kdim;
+                        for ky in ky0..ky1 {
+                            let iy = (iy0 + ky as isize) as usize;
+                            let src = (iy * x.w + (ix0 + kx0 as isize) as usize) * x.c;
+                            let dst = base + (ky * g.kw + kx0) * x.c;
+                            let len = (kx1 - kx0) * x.c;
+                            pb[dst..dst + len].copy_from_slice(&x.data[src..src + len]);
+                        }
                     }
                 }
+                let m = Mm {
+                    x: pb,
+                    xs: kdim,
+                    pk,
+                    res: Residual::None,
+                    ow: g.ow,
+                    act,
+                };
+                let o = &mut band[r * g.ow * pk.cout..(r + n) * g.ow * pk.cout];
+                mm_rows_d(&m, 0, o);
+                r += n;
             }
-            let m = Mm {
-                x: pb,
-                xs: kdim,
-                pk,
-                res: None,
-                act,
-            };
-            let o = &mut band[r * g.ow * pk.cout..(r + n) * g.ow * pk.cout];
-            mm_rows_d(&m, 0, o);
-            r += n;
-        }
-    });
-    Nhwc::from_vec(g.oh, g.ow, pk.cout, out)
+            drop(Nhwc::from_vec(1, 1, patch.len(), patch));
+        },
+    );
+    out
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -377,6 +459,7 @@ struct Dw<'a> {
     act: &'a Act,
 }
 
+#[inline(always)]
 fn dw_rows<L: Lanes>(d: &Dw, r0: usize, out: &mut [f32]) {
     match (d.dw.kh, d.dw.kw) {
         (3, 3) => dw_rows_k::<L, 3>(d, r0, out),
@@ -455,11 +538,13 @@ fn dw_rows_k<L: Lanes, const K: usize>(d: &Dw, r0: usize, out: &mut [f32]) {
 pub fn depthwise(x: &Nhwc, dw: &DwWeights, g: Geom, act: &Act) -> Nhwc {
     assert_eq!(x.c, dw.c, "depthwise channels");
     assert_eq!((g.kh, g.kw), (dw.kh, dw.kw), "depthwise kernel size");
-    let mut out = vec![0.0f32; g.oh * g.ow * x.c];
+    let mut out = Nhwc::uninit(g.oh, g.ow, x.c);
     let d = Dw { x, dw, g, act };
     let macs = g.oh * g.ow * x.c * g.kh * g.kw;
-    for_rows(&mut out, g.oh, g.ow * x.c, macs * 4, |r0, o| dw_rows_d(&d, r0, o));
-    Nhwc::from_vec(g.oh, g.ow, x.c, out)
+    for_rows(&mut out.data, g.oh, g.ow * x.c, macs * 4, |r0, o| {
+        dw_rows_d(&d, r0, o)
+    });
+    out
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -469,7 +554,7 @@ pub fn depthwise(x: &Nhwc, dw: &DwWeights, g: Geom, act: &Act) -> Nhwc {
 /// values it has, as TFLite's SAME pooling does; on even sizes SAME and VALID agree).
 pub fn max_pool2(x: &Nhwc) -> Nhwc {
     let (oh, ow) = (x.h.div_ceil(2), x.w.div_ceil(2));
-    let mut out = Nhwc::zeros(oh, ow, x.c);
+    let mut out = Nhwc::uninit(oh, ow, x.c);
     for oy in 0..oh {
         for ox in 0..ow {
             let o = &mut out.data[(oy * ow + ox) * x.c..(oy * ow + ox + 1) * x.c];
@@ -558,7 +643,7 @@ pub fn resize_bilinear(x: &Nhwc, oh: usize, ow: usize) -> Nhwc {
     };
     let ys: Vec<_> = (0..oh).map(|o| taps(o, x.h, oh)).collect();
     let xs: Vec<_> = (0..ow).map(|o| taps(o, x.w, ow)).collect();
-    let mut out = Nhwc::zeros(oh, ow, x.c);
+    let mut out = Nhwc::uninit(oh, ow, x.c);
     for (oy, &(y0, y1, dy)) in ys.iter().enumerate() {
         for (ox, &(x0, x1, dx)) in xs.iter().enumerate() {
             let (a, b, c, d) = (x.at(y0, x0), x.at(y0, x1), x.at(y1, x0), x.at(y1, x1));
@@ -579,7 +664,7 @@ pub fn depth_to_space2(x: &Nhwc) -> Nhwc {
     assert_eq!(x.c % 4, 0, "depth_to_space channels");
     let c = x.c / 4;
     let (oh, ow) = (x.h * 2, x.w * 2);
-    let mut out = Nhwc::zeros(oh, ow, c);
+    let mut out = Nhwc::uninit(oh, ow, c);
     for y in 0..x.h {
         for xx in 0..x.w {
             let src = x.at(y, xx);
@@ -656,7 +741,13 @@ mod tests {
 
     #[test]
     fn pointwise_matches_naive_with_residual_and_prelu() {
-        for &(h, w, cin, cout, cr) in &[(5, 7, 16, 16, 16), (9, 4, 24, 28, 24), (3, 3, 88, 96, 88), (1, 1, 32, 1404, 0), (13, 11, 42, 48, 0)] {
+        for &(h, w, cin, cout, cr) in &[
+            (5, 7, 16, 16, 16),
+            (9, 4, 24, 28, 24),
+            (3, 3, 88, 96, 88),
+            (1, 1, 32, 1404, 0),
+            (13, 11, 42, 48, 0),
+        ] {
             let x = Nhwc::from_vec(h, w, cin, rnd(h * w * cin, 1));
             let wt = rnd(cout * cin, 2);
             let b = rnd(cout, 3);
@@ -664,7 +755,12 @@ mod tests {
             let alpha = rnd(cout, 5);
             let act = Act::prelu(&alpha);
             let pk = Packed::new(&wt, &b, cout, cin);
-            let got = pointwise(&x, &pk, (cr > 0).then_some(&res), &act);
+            let r = if cr > 0 {
+                Residual::Same(&res)
+            } else {
+                Residual::None
+            };
+            let got = pointwise(&x, &pk, r, &act);
             let g = Geom::valid(h, w, 1, 1);
             let mut want = naive_conv(&x, &wt, &b, cout, g, false);
             for p in 0..h * w {
@@ -677,7 +773,30 @@ mod tests {
                 }
             }
             let (i, d) = worst(&got.data, &want.data);
-            assert!(d < TOL, "{h}x{w} {cin}->{cout}: index {i}: {} vs {}", got.data[i], want.data[i]);
+            assert!(
+                d < TOL,
+                "{h}x{w} {cin}->{cout}: index {i}: {} vs {}",
+                got.data[i],
+                want.data[i]
+            );
+        }
+    }
+
+    #[test]
+    fn pooled_residual_equals_max_pool_then_add() {
+        for &(h, w) in &[(8usize, 6usize), (7, 5)] {
+            let x = Nhwc::from_vec(
+                h.div_ceil(2),
+                w.div_ceil(2),
+                24,
+                rnd(h.div_ceil(2) * w.div_ceil(2) * 24, 21),
+            );
+            let big = Nhwc::from_vec(h, w, 20, rnd(h * w * 20, 22));
+            let pk = Packed::new(&rnd(28 * 24, 23), &rnd(28, 24), 28, 24);
+            let fused = pointwise(&x, &pk, Residual::MaxPool2(&big), &Act::Relu);
+            let pooled = max_pool2(&big);
+            let two_step = pointwise(&x, &pk, Residual::Same(&pooled), &Act::Relu);
+            assert_eq!(fused.data, two_step.data, "{h}x{w}");
         }
     }
 
@@ -699,13 +818,24 @@ mod tests {
             let mut want = naive_conv(&x, &wt, &b, cout, g, false);
             activate(&mut want, &Act::Relu);
             let (i, d) = worst(&got.data, &want.data);
-            assert!(d < TOL, "k{k} s{s}: index {i}: {} vs {}", got.data[i], want.data[i]);
+            assert!(
+                d < TOL,
+                "k{k} s{s}: index {i}: {} vs {}",
+                got.data[i],
+                want.data[i]
+            );
         }
     }
 
     #[test]
     fn depthwise_matches_naive() {
-        for &(h, w, c, k, s) in &[(16, 16, 24, 3, 1), (16, 16, 28, 3, 2), (9, 7, 42, 3, 2), (12, 12, 16, 5, 1), (6, 5, 20, 4, 1)] {
+        for &(h, w, c, k, s) in &[
+            (16, 16, 24, 3, 1),
+            (16, 16, 28, 3, 2),
+            (9, 7, 42, 3, 2),
+            (12, 12, 16, 5, 1),
+            (6, 5, 20, 4, 1),
+        ] {
             let x = Nhwc::from_vec(h, w, c, rnd(h * w * c, 11));
             let wt = rnd(k * k * c, 12);
             let b = rnd(c, 13);
@@ -721,7 +851,12 @@ mod tests {
                 let mut want = naive_conv(&x, &wt, &b, c, g, true);
                 activate(&mut want, &Act::HardSwish);
                 let (i, d) = worst(&got.data, &want.data);
-                assert!(d < TOL, "{h}x{w}x{c} k{k} s{s}: index {i}: {} vs {}", got.data[i], want.data[i]);
+                assert!(
+                    d < TOL,
+                    "{h}x{w}x{c} k{k} s{s}: index {i}: {} vs {}",
+                    got.data[i],
+                    want.data[i]
+                );
             }
         }
     }

@@ -4,7 +4,7 @@
 use candle_core::Result;
 use candle_nn::VarBuilder;
 
-use crate::kernels::{self, Act, DwWeights, Geom, Packed};
+use crate::kernels::{self, Act, DwWeights, Geom, Packed, Residual};
 use crate::tensor::Nhwc;
 use crate::weights::get_vec;
 
@@ -39,7 +39,15 @@ pub struct Conv2d {
 }
 
 impl Conv2d {
-    pub fn new(vb: &VarBuilder, name: &str, cin: usize, cout: usize, k: usize, stride: usize, pad: Pad) -> Result<Self> {
+    pub fn new(
+        vb: &VarBuilder,
+        name: &str,
+        cin: usize,
+        cout: usize,
+        k: usize,
+        stride: usize,
+        pad: Pad,
+    ) -> Result<Self> {
         let vb = vb.pp(name);
         let w = get_vec(&vb, &[cout, k, k, cin], "kernel")?;
         let b = get_vec(&vb, &[cout], "bias")?;
@@ -63,14 +71,27 @@ impl Conv2d {
         self.forward_res(x, None, act)
     }
 
-    /// `act(conv(x) + res)`; `res` may have fewer channels (zero channel padding). Only for
-    /// 1x1 stride-1 convolutions, the only ones a residual follows in these networks.
+    /// `act(conv(x) + res)`; the residual may have fewer channels (zero channel padding). Only
+    /// for 1x1 stride-1 convolutions, the only ones a residual follows in these networks.
     pub fn forward_res(&self, x: &Nhwc, res: Option<&Nhwc>, act: &Act) -> Nhwc {
+        self.forward_with(x, res.map_or(Residual::None, Residual::Same), act)
+    }
+
+    /// `act(conv(x) + res)` with any kind of residual.
+    pub fn forward_with(&self, x: &Nhwc, res: Residual, act: &Act) -> Nhwc {
         if self.k == 1 && self.stride == 1 {
             kernels::pointwise(x, &self.pk, res, act)
         } else {
-            assert!(res.is_none(), "residual after a non-pointwise convolution");
-            kernels::conv(x, &self.pk, self.pad.geom(x.h, x.w, self.k, self.stride), act)
+            assert!(
+                matches!(res, Residual::None),
+                "residual after a non-pointwise convolution"
+            );
+            kernels::conv(
+                x,
+                &self.pk,
+                self.pad.geom(x.h, x.w, self.k, self.stride),
+                act,
+            )
         }
     }
 }
@@ -84,14 +105,27 @@ pub struct DepthwiseConv2d {
 }
 
 impl DepthwiseConv2d {
-    pub fn new(vb: &VarBuilder, name: &str, c: usize, k: usize, stride: usize, pad: Pad) -> Result<Self> {
+    pub fn new(
+        vb: &VarBuilder,
+        name: &str,
+        c: usize,
+        k: usize,
+        stride: usize,
+        pad: Pad,
+    ) -> Result<Self> {
         let vb = vb.pp(name);
         let w = get_vec(&vb, &[1, k, k, c], "kernel")?;
         let bias = get_vec(&vb, &[c], "bias")?;
         Ok(DepthwiseConv2d {
             stride,
             pad,
-            w: DwWeights { kh: k, kw: k, c, w, bias },
+            w: DwWeights {
+                kh: k,
+                kw: k,
+                c,
+                w,
+                bias,
+            },
         })
     }
 
@@ -117,7 +151,14 @@ pub struct BlazeBlock {
 
 impl BlazeBlock {
     /// `names` = (depthwise layer, pointwise layer); `act` the activation after the add.
-    pub fn new(vb: &VarBuilder, names: (&str, &str), cin: usize, cout: usize, stride: usize, act: Act) -> Result<Self> {
+    pub fn new(
+        vb: &VarBuilder,
+        names: (&str, &str),
+        cin: usize,
+        cout: usize,
+        stride: usize,
+        act: Act,
+    ) -> Result<Self> {
         Ok(BlazeBlock {
             dw: DepthwiseConv2d::new(vb, names.0, cin, 3, stride, Pad::Same)?,
             pw: Conv2d::pointwise(vb, names.1, cin, cout)?,
@@ -127,11 +168,11 @@ impl BlazeBlock {
 
     pub fn forward(&self, x: &Nhwc) -> Nhwc {
         let d = self.dw.forward(x, &Act::None);
-        if self.dw.stride == 1 {
-            self.pw.forward_res(&d, Some(x), &self.act)
+        let res = if self.dw.stride == 1 {
+            Residual::Same(x)
         } else {
-            let skip = kernels::max_pool2(x);
-            self.pw.forward_res(&d, Some(&skip), &self.act)
-        }
+            Residual::MaxPool2(x)
+        };
+        self.pw.forward_with(&d, res, &self.act)
     }
 }

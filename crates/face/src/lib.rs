@@ -9,6 +9,8 @@ pub mod kernels;
 pub mod layers;
 pub mod matte;
 pub mod mesh_net;
+pub mod overlay;
+pub mod pool;
 pub mod roi;
 pub mod selfie_net;
 pub mod simd;

@@ -77,7 +77,13 @@ impl SelfieSegmenter {
         Ok(Matte {
             width: img.width(),
             height: img.height(),
-            data: resize_linear(&m.data, m.w, m.h, img.width() as usize, img.height() as usize),
+            data: resize_linear(
+                &m.data,
+                m.w,
+                m.h,
+                img.width() as usize,
+                img.height() as usize,
+            ),
         })
     }
 }
@@ -107,12 +113,21 @@ pub fn resize_linear(src: &[f32], sw: usize, sh: usize, dw: usize, dh: usize) ->
     let mut rows: Vec<Vec<f32>> = Vec::with_capacity(sh);
     for y in 0..sh {
         let r = &src[y * sw..(y + 1) * sw];
-        rows.push(xs.iter().map(|&(a, b, t)| r[a] * (1.0 - t) + r[b] * t).collect());
+        rows.push(
+            xs.iter()
+                .map(|&(a, b, t)| r[a] * (1.0 - t) + r[b] * t)
+                .collect(),
+        );
     }
     let mut out = Vec::with_capacity(dw * dh);
     for y in 0..dh {
         let (a, b, t) = taps(y, sh, dh);
-        out.extend(rows[a].iter().zip(&rows[b]).map(|(p, q)| p * (1.0 - t) + q * t));
+        out.extend(
+            rows[a]
+                .iter()
+                .zip(&rows[b])
+                .map(|(p, q)| p * (1.0 - t) + q * t),
+        );
     }
     out
 }

@@ -16,26 +16,27 @@ use crate::tensor::Nhwc;
 /// Mesh points the lip branch is placed on and refines (x, y only), in the branch's output
 /// order.
 pub const LIPS: [usize; 80] = [
-    61, 146, 91, 181, 84, 17, 314, 405, 321, 375, 291, 185, 40, 39, 37, 0, 267, 269, 270, 409, 78, 95, 88, 178, 87, 14,
-    317, 402, 318, 324, 308, 191, 80, 81, 82, 13, 312, 311, 310, 415, 76, 77, 90, 180, 85, 16, 315, 404, 320, 307, 306,
-    184, 74, 73, 72, 11, 302, 303, 304, 408, 62, 96, 89, 179, 86, 15, 316, 403, 319, 325, 292, 183, 42, 41, 38, 12, 268,
-    271, 272, 407,
+    61, 146, 91, 181, 84, 17, 314, 405, 321, 375, 291, 185, 40, 39, 37, 0, 267, 269, 270, 409, 78,
+    95, 88, 178, 87, 14, 317, 402, 318, 324, 308, 191, 80, 81, 82, 13, 312, 311, 310, 415, 76, 77,
+    90, 180, 85, 16, 315, 404, 320, 307, 306, 184, 74, 73, 72, 11, 302, 303, 304, 408, 62, 96, 89,
+    179, 86, 15, 316, 403, 319, 325, 292, 183, 42, 41, 38, 12, 268, 271, 272, 407,
 ];
 
 /// Mesh points of the first eye (corners 33 and 133: the subject's right eye, image left) and
 /// its brow.
 pub const LEFT_EYE: [usize; 71] = [
-    33, 7, 163, 144, 145, 153, 154, 155, 133, 246, 161, 160, 159, 158, 157, 173, 130, 25, 110, 24, 23, 22, 26, 112, 243,
-    247, 30, 29, 27, 28, 56, 190, 226, 31, 228, 229, 230, 231, 232, 233, 244, 113, 225, 224, 223, 222, 221, 189, 35, 124,
-    46, 53, 52, 65, 143, 111, 117, 118, 119, 120, 121, 128, 245, 156, 70, 63, 105, 66, 107, 55, 193,
+    33, 7, 163, 144, 145, 153, 154, 155, 133, 246, 161, 160, 159, 158, 157, 173, 130, 25, 110, 24,
+    23, 22, 26, 112, 243, 247, 30, 29, 27, 28, 56, 190, 226, 31, 228, 229, 230, 231, 232, 233, 244,
+    113, 225, 224, 223, 222, 221, 189, 35, 124, 46, 53, 52, 65, 143, 111, 117, 118, 119, 120, 121,
+    128, 245, 156, 70, 63, 105, 66, 107, 55, 193,
 ];
 
 /// Mesh points of the second eye (corners 362 and 263) and its brow.
 pub const RIGHT_EYE: [usize; 71] = [
-    263, 249, 390, 373, 374, 380, 381, 382, 362, 466, 388, 387, 386, 385, 384, 398, 359, 255, 339, 254, 253, 252, 256,
-    341, 463, 467, 260, 259, 257, 258, 286, 414, 446, 261, 448, 449, 450, 451, 452, 453, 464, 342, 445, 444, 443, 442,
-    441, 413, 265, 353, 276, 283, 282, 295, 372, 340, 346, 347, 348, 349, 350, 357, 465, 383, 300, 293, 334, 296, 336,
-    285, 417,
+    263, 249, 390, 373, 374, 380, 381, 382, 362, 466, 388, 387, 386, 385, 384, 398, 359, 255, 339,
+    254, 253, 252, 256, 341, 463, 467, 260, 259, 257, 258, 286, 414, 446, 261, 448, 449, 450, 451,
+    452, 453, 464, 342, 445, 444, 443, 442, 441, 413, 265, 353, 276, 283, 282, 295, 372, 340, 346,
+    347, 348, 349, 350, 357, 465, 383, 300, 293, 334, 296, 336, 285, 417,
 ];
 
 /// The mesh points that orient each branch's rectangle: (lips, first eye, second eye).
@@ -48,7 +49,9 @@ pub const BRANCH_SIZE: usize = 16;
 pub const MESH_TO_FEATURES: f32 = 0.25;
 /// Element-wise factors applied to a branch's 4x4 matrix before its points are mapped back
 /// (the translation to 192-px units).
-pub const LANDMARK_MATRIX_FACTORS: [f32; 16] = [1., 1., 4., 4., 1., 1., 4., 4., 0.25, 0.25, 1., 1., 0.25, 0.25, 1., 1.];
+pub const LANDMARK_MATRIX_FACTORS: [f32; 16] = [
+    1., 1., 4., 4., 1., 1., 4., 4., 0.25, 0.25, 1., 1., 0.25, 0.25, 1., 1.,
+];
 
 /// The raw outputs, in 192-px crop units.
 #[derive(Debug, Clone)]
@@ -84,16 +87,29 @@ fn prelu_name(i: usize) -> String {
 }
 
 /// A PReLU BlazeBlock named by its depthwise index and its pointwise (= PReLU) index.
-fn block(vb: &VarBuilder, dw: usize, pw: usize, cin: usize, cout: usize, stride: usize) -> Result<BlazeBlock> {
+fn block(
+    vb: &VarBuilder,
+    dw: usize,
+    pw: usize,
+    cin: usize,
+    cout: usize,
+    stride: usize,
+) -> Result<BlazeBlock> {
     let act = prelu(vb, &prelu_name(pw), cout)?;
-    BlazeBlock::new(vb, (&dw_name(dw), &format!("conv2d_{pw}")), cin, cout, stride, act)
+    BlazeBlock::new(
+        vb,
+        (&dw_name(dw), &format!("conv2d_{pw}")),
+        cin,
+        cout,
+        stride,
+        act,
+    )
 }
 
-fn run(blocks: &[BlazeBlock], mut h: Nhwc) -> Nhwc {
-    for b in blocks {
-        h = b.forward(&h);
-    }
-    h
+/// Blocks in sequence from a borrowed input (`blocks` is non-empty).
+fn run(blocks: &[BlazeBlock], x: &Nhwc) -> Nhwc {
+    let h = blocks[0].forward(x);
+    blocks[1..].iter().fold(h, |h, b| b.forward(&h))
 }
 
 /// A branch's first part: 16x16x32 down to 4x4x128 in six blocks.
@@ -104,7 +120,14 @@ struct Stem {
 
 impl Stem {
     fn new(vb: &VarBuilder, dw: usize, pw: usize) -> Result<Self> {
-        let shape = [(32, 32, 1), (32, 32, 1), (32, 64, 2), (64, 64, 1), (64, 64, 1), (64, 128, 2)];
+        let shape = [
+            (32, 32, 1),
+            (32, 32, 1),
+            (32, 64, 2),
+            (64, 64, 1),
+            (64, 64, 1),
+            (64, 128, 2),
+        ];
         let blocks = shape
             .iter()
             .enumerate()
@@ -143,11 +166,11 @@ impl Tail {
         })
     }
 
-    fn forward(&self, h: Nhwc) -> Vec<f32> {
-        let h = run(&self.blocks, h);
+    fn forward(&self, x: &Nhwc) -> Vec<f32> {
+        let h = run(&self.blocks, x);
         let h = self.reduce.forward(&h, &self.reduce_act);
         let h = self.last.forward(&h);
-        self.head.forward(&h, &Act::None).data
+        self.head.forward(&h, &Act::None).into_vec()
     }
 }
 
@@ -208,7 +231,10 @@ impl AttentionMeshNet {
             last: block(&vb, 17, 19, 32, 32, 1)?,
             mesh: Conv2d::new(&vb, "output_mesh", 32, 1404, 3, 3, Pad::Valid)?,
             flag: Conv2d::new(&vb, "conv_faceflag", 32, 1, 3, 3, Pad::Valid)?,
-            lips: (Stem::new(&vb, 18, 20)?, Tail::new(&vb, 24, 26, "conv_lips", 160)?),
+            lips: (
+                Stem::new(&vb, 18, 20)?,
+                Tail::new(&vb, 24, 26, "conv_lips", 160)?,
+            ),
             left: (
                 Stem::new(&vb, 30, 33)?,
                 Tail::new(&vb, 36, 39, "conv_left_eye", 142)?,
@@ -225,18 +251,13 @@ impl AttentionMeshNet {
     /// `x`: the 192x192x3 crop in [0, 1].
     pub fn forward(&self, x: &Nhwc) -> MeshOutputs {
         assert_eq!((x.h, x.w, x.c), (192, 192, 3), "landmark model input");
-        let mut h = self.stem.forward(x, &self.stem_act);
-        let mut features = None;
-        for (i, b) in self.blocks.iter().enumerate() {
-            h = b.forward(&h);
-            if i == FEATURE_TAP {
-                features = Some(h.clone());
-            }
-        }
-        let features = features.unwrap_or_else(|| h.clone());
+        let stem = self.stem.forward(x, &self.stem_act);
+        let features = run(&self.blocks[..=FEATURE_TAP], &stem);
+        drop(stem);
+        let h = run(&self.blocks[FEATURE_TAP + 1..], &features);
         let h = self.reduce.forward(&h, &self.reduce_act);
         let h = self.last.forward(&h);
-        let mesh = self.mesh.forward(&h, &Act::None).data;
+        let mesh = self.mesh.forward(&h, &Act::None).into_vec();
         let face_flag = self.flag.forward(&h, &Act::None).data[0];
 
         let scaled: Vec<f32> = mesh.iter().map(|v| v * MESH_TO_FEATURES).collect();
@@ -245,14 +266,14 @@ impl AttentionMeshNet {
         let m_right = landmarks_to_matrix(&scaled, ROTATION_POINTS[2], &RIGHT_EYE);
         let lips = {
             let f = transform_tensor_bilinear(&features, &m_lips, BRANCH_SIZE, BRANCH_SIZE);
-            let f = run(&self.lips.0.blocks, f);
-            transform_landmarks(&self.lips.1.forward(f), &m_lips)
+            let f = run(&self.lips.0.blocks, &f);
+            transform_landmarks(&self.lips.1.forward(&f), &m_lips)
         };
         let eye = |branch: &(Stem, Tail, Tail), m: &[f32; 16]| {
             let f = transform_tensor_bilinear(&features, m, BRANCH_SIZE, BRANCH_SIZE);
-            let f = run(&branch.0.blocks, f);
-            let eye = branch.1.forward(f.clone());
-            let iris = branch.2.forward(f);
+            let f = run(&branch.0.blocks, &f);
+            let eye = branch.1.forward(&f);
+            let iris = branch.2.forward(&f);
             (transform_landmarks(&eye, m), transform_landmarks(&iris, m))
         };
         let (left_eye, left_iris) = eye(&self.left, &m_left);
@@ -296,7 +317,11 @@ fn mat4_mul(a: &[f32; 16], b: &[f32; 16]) -> [f32; 16] {
 /// grid onto the feature map, for a rectangle aligned with the line between the two
 /// `rotation` points and 1.5 times the bounding box of `subset` in that frame. `landmarks`:
 /// 468 x (x, y, z) in feature-map units.
-pub fn landmarks_to_matrix(landmarks: &[f32], rotation: (usize, usize), subset: &[usize]) -> [f32; 16] {
+pub fn landmarks_to_matrix(
+    landmarks: &[f32],
+    rotation: (usize, usize),
+    subset: &[usize],
+) -> [f32; 16] {
     let p = |i: usize| (landmarks[i * 3], landmarks[i * 3 + 1]);
     let (l, r) = (p(rotation.0), p(rotation.1));
     let rot = 0.0f32 - (r.1 - l.1).atan2(r.0 - l.0);
@@ -304,7 +329,10 @@ pub fn landmarks_to_matrix(landmarks: &[f32], rotation: (usize, usize), subset: 
     let t_rot = [c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0];
     let (ci, si) = ((-rot).cos(), (-rot).sin());
     let t_inv = [ci, -si, 0.0, si, ci, 0.0, 0.0, 0.0, 1.0];
-    let rotated: Vec<[f32; 3]> = subset.iter().map(|&i| mat3_vec(&t_rot, [p(i).0, p(i).1, 1.0])).collect();
+    let rotated: Vec<[f32; 3]> = subset
+        .iter()
+        .map(|&i| mat3_vec(&t_rot, [p(i).0, p(i).1, 1.0]))
+        .collect();
     let (mut max, mut min) = (rotated[0], rotated[0]);
     for q in &rotated[1..] {
         if max[0] < q[0] {
@@ -328,14 +356,39 @@ pub fn landmarks_to_matrix(landmarks: &[f32], rotation: (usize, usize), subset: 
     centre[1] /= 2.0;
     let centre = mat3_vec(&t_inv, centre);
     let out = BRANCH_SIZE as f32;
-    let identity = [1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1.];
-    let shift = [1., 0., 0., centre[0], 0., 1., 0., centre[1], 0., 0., 1., 0., 0., 0., 0., 1.];
+    let identity = [
+        1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1.,
+    ];
+    let shift = [
+        1., 0., 0., centre[0], 0., 1., 0., centre[1], 0., 0., 1., 0., 0., 0., 0., 1.,
+    ];
     let rr = -rot;
-    let rotate = [rr.cos(), -rr.sin(), 0., 0., rr.sin(), rr.cos(), 0., 0., 0., 0., 1., 0., 0., 0., 0., 1.];
+    let rotate = [
+        rr.cos(),
+        -rr.sin(),
+        0.,
+        0.,
+        rr.sin(),
+        rr.cos(),
+        0.,
+        0.,
+        0.,
+        0.,
+        1.,
+        0.,
+        0.,
+        0.,
+        0.,
+        1.,
+    ];
     let (sx, sy) = (BRANCH_SCALE * cw / out, BRANCH_SCALE * ch / out);
-    let scale = [sx, 0., 0., 0., 0., sy, 0., 0., 0., 0., 1., 0., 0., 0., 0., 1.];
+    let scale = [
+        sx, 0., 0., 0., 0., sy, 0., 0., 0., 0., 1., 0., 0., 0., 0., 1.,
+    ];
     let half = -(out / 2.0);
-    let shift2 = [1., 0., 0., half, 0., 1., 0., half, 0., 0., 1., 0., 0., 0., 0., 1.];
+    let shift2 = [
+        1., 0., 0., half, 0., 1., 0., half, 0., 0., 1., 0., 0., 0., 0., 1.,
+    ];
     let t = mat4_mul(&identity, &shift);
     let t = mat4_mul(&t, &rotate);
     let t = mat4_mul(&t, &scale);

@@ -34,7 +34,10 @@ impl NormRect {
 
     /// Intersection over union of the axis-aligned extents (rotation ignored).
     pub fn iou(&self, o: &NormRect) -> f32 {
-        let a = (self.x_center - self.width / 2.0, self.y_center - self.height / 2.0);
+        let a = (
+            self.x_center - self.width / 2.0,
+            self.y_center - self.height / 2.0,
+        );
         let b = (o.x_center - o.width / 2.0, o.y_center - o.height / 2.0);
         let ix = (a.0 + self.width).min(b.0 + o.width) - a.0.max(b.0);
         let iy = (a.1 + self.height).min(b.1 + o.height) - a.1.max(b.1);
@@ -85,7 +88,8 @@ pub fn from_detection(d: &Detection, w: u32, h: u32) -> NormRect {
 /// turned so the outer eye corners (points 33 and 263) are level.
 pub fn from_landmarks(lm: &[[f32; 3]], w: u32, h: u32) -> NormRect {
     // MediaPipe starts the maxima at the smallest positive float, not the lowest.
-    let (mut x0, mut x1, mut y0, mut y1) = (f32::MAX, f32::MIN_POSITIVE, f32::MAX, f32::MIN_POSITIVE);
+    let (mut x0, mut x1, mut y0, mut y1) =
+        (f32::MAX, f32::MIN_POSITIVE, f32::MAX, f32::MIN_POSITIVE);
     for p in lm {
         x0 = x0.min(p[0]);
         x1 = x1.max(p[0]);
@@ -130,11 +134,21 @@ mod tests {
             ymin: 0.1,
             width: 0.2,
             height: 0.4,
-            keypoints: [[0.25, 0.2], [0.35, 0.2], [0.3, 0.3], [0.3, 0.4], [0.2, 0.2], [0.4, 0.2]],
+            keypoints: [
+                [0.25, 0.2],
+                [0.35, 0.2],
+                [0.3, 0.3],
+                [0.3, 0.4],
+                [0.2, 0.2],
+                [0.4, 0.2],
+            ],
         };
         // 200x100 image: the box is 40x40 px.
         let r = from_detection(&d, 200, 100);
-        assert!((r.width * 200.0 - 60.0).abs() < 1e-4 && (r.height * 100.0 - 60.0).abs() < 1e-4, "{r:?}");
+        assert!(
+            (r.width * 200.0 - 60.0).abs() < 1e-4 && (r.height * 100.0 - 60.0).abs() < 1e-4,
+            "{r:?}"
+        );
         assert_eq!((r.x_center, r.y_center, r.rotation), (0.3, 0.3, 0.0));
     }
 }

@@ -30,7 +30,12 @@ impl Excite {
     /// The gates for the pooled input.
     fn gates(&self, pooled: &Nhwc) -> Vec<f32> {
         let h = self.fc1.forward(pooled, &Act::Relu);
-        self.fc2.forward(&h, &Act::None).data.iter().map(|&v| sigmoid(v)).collect()
+        self.fc2
+            .forward(&h, &Act::None)
+            .data
+            .iter()
+            .map(|&v| sigmoid(v))
+            .collect()
     }
 }
 
@@ -48,7 +53,18 @@ struct Bottleneck {
 
 /// (expand index, depthwise index, excitation index or 0, projection index, input, expanded,
 /// output channels, kernel, stride, hard-swish) of the encoder's bottlenecks.
-type Spec = (usize, usize, usize, usize, usize, usize, usize, usize, usize, bool);
+type Spec = (
+    usize,
+    usize,
+    usize,
+    usize,
+    usize,
+    usize,
+    usize,
+    usize,
+    usize,
+    bool,
+);
 const ENCODER: [Spec; 8] = [
     (1, 0, 2, 4, 16, 16, 16, 3, 2, false),
     (5, 1, 0, 6, 16, 72, 24, 3, 2, false),
@@ -92,7 +108,8 @@ impl Bottleneck {
         if let Some(e) = &self.excite {
             h = kernels::scale_channels(&h, &e.gates(&kernels::global_avg_pool(&h)));
         }
-        self.project.forward_res(&h, self.residual.then_some(x), &Act::None)
+        self.project
+            .forward_res(&h, self.residual.then_some(x), &Act::None)
     }
 }
 
@@ -145,7 +162,10 @@ impl SelfieNet {
     pub const INPUT: usize = 256;
 
     pub fn new(vb: VarBuilder) -> Result<Self> {
-        let encoder = ENCODER.iter().map(|&s| Bottleneck::new(&vb, s)).collect::<Result<_>>()?;
+        let encoder = ENCODER
+            .iter()
+            .map(|&s| Bottleneck::new(&vb, s))
+            .collect::<Result<_>>()?;
         let seg = vb.pp("segment");
         Ok(SelfieNet {
             stem: Conv2d::new(&vb, "conv2d", 3, 16, 3, 2, Pad::Same)?,
@@ -166,14 +186,12 @@ impl SelfieNet {
     pub fn forward(&self, x: &Nhwc) -> Nhwc {
         assert_eq!((x.h, x.w, x.c), (256, 256, 3), "segmentation input");
         let s128 = self.stem.forward(x, &Act::HardSwish);
-        let mut h = s128.clone();
-        let mut skips = Vec::new();
-        for (i, b) in self.encoder.iter().enumerate() {
-            h = b.forward(&h);
-            if i == 0 || i == 2 {
-                skips.push(h.clone());
-            }
-        }
+        let s64 = self.encoder[0].forward(&s128);
+        let h = self.encoder[1].forward(&s64);
+        let s32 = self.encoder[2].forward(&h);
+        let h = self.encoder[4..]
+            .iter()
+            .fold(self.encoder[3].forward(&s32), |h, b| b.forward(&h));
         let gates: Vec<f32> = self
             .top_gate
             .forward(&kernels::global_avg_pool(&h), &Act::None)
@@ -182,8 +200,8 @@ impl SelfieNet {
             .map(|&v| sigmoid(v))
             .collect();
         let mut h = kernels::scale_channels(&self.top.forward(&h, &Act::Relu), &gates);
-        h = self.up[0].forward(&h, &skips[1]);
-        h = self.up[1].forward(&h, &skips[0]);
+        h = self.up[0].forward(&h, &s32);
+        h = self.up[1].forward(&h, &s64);
         h = self.up[2].forward(&h, &s128);
         self.transpose_conv(&h)
     }

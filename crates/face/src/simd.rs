@@ -239,9 +239,10 @@ mod zmm {
     }
 }
 
-/// Defines `fn $name(args)` that runs `$body` (written against a lane type `L: Lanes` given as
-/// the generic parameter of an inner function) with [`Zmm`] in an AVX-512F-enabled copy when
-/// [`level`] says so, and with [`Arr`] otherwise.
+/// Defines `fn $name(args)` that runs `$imp::<L>` with `L` = [`Zmm`] in an AVX-512F-enabled
+/// copy when [`level`] says so, and with [`Arr`] otherwise. `$imp` and everything it calls
+/// must be `#[inline(always)]`, so the intrinsics are inlined into the AVX-512 copy (an
+/// intrinsic left in a function without the feature is an out-of-line call per operation).
 macro_rules! dispatch {
     ($(#[$meta:meta])* $vis:vis fn $name:ident($($arg:ident : $ty:ty),* $(,)?) $(-> $ret:ty)? = $imp:ident) => {
         $(#[$meta])*
@@ -272,7 +273,13 @@ mod tests {
         let a: Vec<f32> = (0..W).map(|i| i as f32 - 7.5).collect();
         let b: Vec<f32> = (0..W).map(|i| (i as f32 * 0.37).sin()).collect();
         // SAFETY: both hold 16 values; load_n reads 5.
-        let (x, y, z) = unsafe { (L::load(a.as_ptr()), L::load(b.as_ptr()), L::load_n(a.as_ptr(), 5)) };
+        let (x, y, z) = unsafe {
+            (
+                L::load(a.as_ptr()),
+                L::load(b.as_ptr()),
+                L::load_n(a.as_ptr(), 5),
+            )
+        };
         let mut out = [0.0f32; W];
         // SAFETY: out holds 16 values.
         unsafe { x.max(y).store_n(out.as_mut_ptr(), 9) };

@@ -132,7 +132,8 @@ fn lu_solve(mut a: [[f64; 8]; 8], mut b: [f64; 8]) -> [f64; 8] {
 /// 3x3 inverse by cofactors over the determinant (OpenCV's `invert` for 3x3 f64).
 fn invert3(m: &[f64; 9]) -> [f64; 9] {
     let s = |r: usize, c: usize| m[r * 3 + c];
-    let det = s(0, 0) * (s(1, 1) * s(2, 2) - s(1, 2) * s(2, 1)) - s(0, 1) * (s(1, 0) * s(2, 2) - s(1, 2) * s(2, 0))
+    let det = s(0, 0) * (s(1, 1) * s(2, 2) - s(1, 2) * s(2, 1))
+        - s(0, 1) * (s(1, 0) * s(2, 2) - s(1, 2) * s(2, 0))
         + s(0, 2) * (s(1, 0) * s(2, 1) - s(1, 1) * s(2, 0));
     if det == 0.0 {
         return [0.0; 9];
@@ -151,84 +152,141 @@ fn invert3(m: &[f64; 9]) -> [f64; 9] {
     ]
 }
 
-/// OpenCV's `cvRound` of a double: to nearest, ties to even.
-fn round_even(v: f64) -> i64 {
-    let r = v.round();
-    if (v - v.trunc()).abs() == 0.5 {
-        2.0 * (v / 2.0).round()
-    } else {
-        r
-    }
-    .clamp(i32::MIN as f64, i32::MAX as f64) as i64
+/// OpenCV's `cvRound` of a double: to nearest, ties to even (the SSE2 conversion in the
+/// default rounding mode), after clamping to the i32 range as `warpPerspective` does.
+#[inline(always)]
+fn round_even(v: f64) -> i32 {
+    // Adding 1.5 * 2^52 rounds to an integer in the current (nearest-even) mode for
+    // |v| < 2^51, and leaves that integer in the low 32 bits of the result.
+    const MAGIC: f64 = 6_755_399_441_055_744.0;
+    let v = v.max(i32::MIN as f64).min(i32::MAX as f64);
+    (v + MAGIC).to_bits() as u32 as i32
 }
+
+/// The fixed-point source coordinates (1/32 pixel) of output pixels `x0..x0 + sx.len()` of a
+/// row, continuing a block of OpenCV's evaluation from its start values.
+#[inline(always)]
+fn row_coords(m: &[f64; 9], start: [f64; 3], sx: &mut [i32], sy: &mut [i32]) {
+    let [x0, y0, w0] = start;
+    for (i, (a, b)) in sx.iter_mut().zip(sy.iter_mut()).enumerate() {
+        let x1 = i as f64;
+        let w = w0 + m[6] * x1;
+        let w = if w != 0.0 { TAB as f64 / w } else { 0.0 };
+        *a = round_even((x0 + m[0] * x1) * w);
+        *b = round_even((y0 + m[3] * x1) * w);
+    }
+}
+
+fn row_coords_impl<L: crate::simd::Lanes>(
+    m: &[f64; 9],
+    start: [f64; 3],
+    sx: &mut [i32],
+    sy: &mut [i32],
+) {
+    row_coords(m, start, sx, sy)
+}
+
+crate::simd::dispatch!(fn row_coords_d(m: &[f64; 9], start: [f64; 3], sx: &mut [i32], sy: &mut [i32]) = row_coords_impl);
 
 /// Samples `roi` of `img` into an `ow x oh` 8-bit RGB crop (OpenCV `warpPerspective`,
 /// `INTER_LINEAR`).
 pub fn warp_u8(img: &RgbImage, roi: &RotatedRect, ow: usize, oh: usize, border: Border) -> Vec<u8> {
     let (iw, ih) = (img.width() as i64, img.height() as i64);
-    let src = img.as_raw();
+    let src = img.as_raw().as_slice();
     let m = roi.crop_to_image(ow, oh);
     let mut out = vec![0u8; ow * oh * 3];
     if iw == 0 || ih == 0 {
         return out;
     }
-    let px = |x: i64, y: i64| -> Option<&[u8]> {
-        if x < 0 || y < 0 || x >= iw || y >= ih {
-            None
-        } else {
-            let o = ((y * iw + x) * 3) as usize;
-            Some(&src[o..o + 3])
-        }
-    };
-    let clamp = |v: i64, n: i64| v.clamp(0, n - 1);
+    let stride = (iw * 3) as usize;
+    let half = 1i32 << (COEF_BITS - 1);
+    // The bilinear weights are products of multiples of 1/32: exact in 1/32768 units.
+    let unit = ((1 << COEF_BITS) / (TAB * TAB)) as i32;
     // OpenCV evaluates the map per block of output pixels (16 rows by up to 1024/16 columns):
     // the row start at the block's first column, then one step per column.
     let bh0 = 16.min(oh).max(1);
     let bw0 = (1024 / bh0).min(ow).max(1);
+    let (mut sxs, mut sys) = (vec![0i32; bw0], vec![0i32; bw0]);
     for y in 0..oh {
         let yf = y as f64;
-        for x in 0..ow {
-            let bx = (x / bw0 * bw0) as f64;
-            let x1 = (x % bw0) as f64;
-            let x0 = m[0] * bx + m[1] * yf + m[2];
-            let y0 = m[3] * bx + m[4] * yf + m[5];
-            let w0 = m[6] * bx + m[7] * yf + m[8];
-            let w = w0 + m[6] * x1;
-            let w = if w != 0.0 { TAB as f64 / w } else { 0.0 };
-            let sx = round_even((x0 + m[0] * x1) * w);
-            let sy = round_even((y0 + m[3] * x1) * w);
-            let (x0, y0) = (sx >> 5, sy >> 5);
-            let (fx, fy) = (sx & (TAB - 1), sy & (TAB - 1));
-            // The bilinear weights are products of multiples of 1/32: exact in 1/32768 units.
-            let unit = (1 << COEF_BITS) / (TAB * TAB);
-            let w = [
-                (TAB - fy) * (TAB - fx) * unit,
-                (TAB - fy) * fx * unit,
-                fy * (TAB - fx) * unit,
-                fy * fx * unit,
+        let row = &mut out[y * ow * 3..(y + 1) * ow * 3];
+        for bx in (0..ow).step_by(bw0) {
+            let n = bw0.min(ow - bx);
+            let bxf = bx as f64;
+            let start = [
+                m[0] * bxf + m[1] * yf + m[2],
+                m[3] * bxf + m[4] * yf + m[5],
+                m[6] * bxf + m[7] * yf + m[8],
             ];
-            let o = &mut out[(y * ow + x) * 3..(y * ow + x + 1) * 3];
-            let taps: [Option<&[u8]>; 4] = match border {
-                Border::Zero => {
-                    if x0 >= iw || x0 + 1 < 0 || y0 >= ih || y0 + 1 < 0 {
-                        continue;
+            row_coords_d(&m, start, &mut sxs[..n], &mut sys[..n]);
+            for (i, (&sx, &sy)) in sxs[..n].iter().zip(&sys[..n]).enumerate() {
+                let x = bx + i;
+                let (px, py) = ((sx >> 5) as i64, (sy >> 5) as i64);
+                let (fx, fy) = (sx & (TAB as i32 - 1), sy & (TAB as i32 - 1));
+                let t = TAB as i32;
+                let wt = [
+                    (t - fy) * (t - fx) * unit,
+                    (t - fy) * fx * unit,
+                    fy * (t - fx) * unit,
+                    fy * fx * unit,
+                ];
+                let o = &mut row[x * 3..x * 3 + 3];
+                if px >= 0 && py >= 0 && px + 1 < iw && py + 1 < ih {
+                    let a = (py * iw + px) as usize * 3;
+                    debug_assert!(a + stride + 6 <= src.len());
+                    for (c, v) in o.iter_mut().enumerate() {
+                        // SAFETY: (px, py) and (px + 1, py + 1) are inside the image (checked
+                        // above), so bytes a..a+6 of rows py and py + 1 are in `src`.
+                        let (a0, a1, b0, b1) = unsafe {
+                            (
+                                *src.get_unchecked(a + c) as i32,
+                                *src.get_unchecked(a + c + 3) as i32,
+                                *src.get_unchecked(a + stride + c) as i32,
+                                *src.get_unchecked(a + stride + c + 3) as i32,
+                            )
+                        };
+                        // Weights sum to 2^15, so the result is within 0..=255.
+                        *v = ((a0 * wt[0] + a1 * wt[1] + b0 * wt[2] + b1 * wt[3] + half)
+                            >> COEF_BITS) as u8;
                     }
-                    [px(x0, y0), px(x0 + 1, y0), px(x0, y0 + 1), px(x0 + 1, y0 + 1)]
+                    continue;
                 }
-                Border::Replicate => {
-                    let (xa, xb) = (clamp(x0, iw), clamp(x0 + 1, iw));
-                    let (ya, yb) = (clamp(y0, ih), clamp(y0 + 1, ih));
-                    [px(xa, ya), px(xb, ya), px(xa, yb), px(xb, yb)]
-                }
-            };
-            for (c, v) in o.iter_mut().enumerate() {
-                let mut s: i64 = 0;
-                for (t, wt) in taps.iter().zip(w) {
-                    if let Some(p) = t {
-                        s += p[c] as i64 * wt;
+                // Near or past the edge: each tap reads the border rule.
+                let taps = match border {
+                    Border::Zero => {
+                        if px >= iw || px + 1 < 0 || py >= ih || py + 1 < 0 {
+                            continue;
+                        }
+                        let inside = |x: i64, y: i64| {
+                            (x >= 0 && y >= 0 && x < iw && y < ih).then_some((x, y))
+                        };
+                        [
+                            inside(px, py),
+                            inside(px + 1, py),
+                            inside(px, py + 1),
+                            inside(px + 1, py + 1),
+                        ]
                     }
+                    Border::Replicate => {
+                        let (xa, xb) = (px.clamp(0, iw - 1), (px + 1).clamp(0, iw - 1));
+                        let (ya, yb) = (py.clamp(0, ih - 1), (py + 1).clamp(0, ih - 1));
+                        [
+                            Some((xa, ya)),
+                            Some((xb, ya)),
+                            Some((xa, yb)),
+                            Some((xb, yb)),
+                        ]
+                    }
+                };
+                for (c, v) in o.iter_mut().enumerate() {
+                    let mut s = 0i32;
+                    for (tap, w) in taps.iter().zip(wt) {
+                        if let Some((tx, ty)) = tap {
+                            s += src[(ty * iw + tx) as usize * 3 + c] as i32 * w;
+                        }
+                    }
+                    *v = ((s + half) >> COEF_BITS).clamp(0, 255) as u8;
                 }
-                *v = ((s + (1 << (COEF_BITS - 1))) >> COEF_BITS).clamp(0, 255) as u8;
             }
         }
     }
@@ -238,7 +296,12 @@ pub fn warp_u8(img: &RgbImage, roi: &RotatedRect, ow: usize, oh: usize, border: 
 /// The 8-bit crop mapped to `[lo, hi]` (0 -> lo, 255 -> hi) as a model input.
 pub fn to_tensor(crop: &[u8], ow: usize, oh: usize, lo: f32, hi: f32) -> Nhwc {
     let scale = (hi - lo) / 255.0;
-    Nhwc::from_vec(oh, ow, 3, crop.iter().map(|&v| v as f32 * scale + lo).collect())
+    Nhwc::from_vec(
+        oh,
+        ow,
+        3,
+        crop.iter().map(|&v| v as f32 * scale + lo).collect(),
+    )
 }
 
 /// The whole image letterboxed (aspect kept, centred, zero border) into an `n x n` tensor:
@@ -305,6 +368,9 @@ mod tests {
         assert_eq!(round_even(2.5), 2);
         assert_eq!(round_even(3.5), 4);
         assert_eq!(round_even(-2.5), -2);
+        assert_eq!(round_even(-3.7), -4);
         assert_eq!(round_even(2.4999), 2);
+        assert_eq!(round_even(1e300), i32::MAX);
+        assert_eq!(round_even(-1e300), i32::MIN);
     }
 }

@@ -30,7 +30,8 @@ pub mod bundled {
         include_bytes!("../weights/face_detection_full_range.safetensors");
     pub const FACE_LANDMARK_WITH_ATTENTION: &[u8] =
         include_bytes!("../weights/face_landmark_with_attention.safetensors");
-    pub const SELFIE_SEGMENTATION: &[u8] = include_bytes!("../weights/selfie_segmentation.safetensors");
+    pub const SELFIE_SEGMENTATION: &[u8] =
+        include_bytes!("../weights/selfie_segmentation.safetensors");
 }
 
 /// A parsed weights file.
@@ -47,9 +48,11 @@ impl WeightsFile {
             label: label.to_owned(),
             reason,
         };
-        let (_, meta) = safetensors::SafeTensors::read_metadata(bytes).map_err(|e| fmt(e.to_string()))?;
+        let (_, meta) =
+            safetensors::SafeTensors::read_metadata(bytes).map_err(|e| fmt(e.to_string()))?;
         let metadata = meta.metadata().clone().unwrap_or_default();
-        let tensors = candle_core::safetensors::load_buffer(bytes, &Device::Cpu).map_err(|e| fmt(e.to_string()))?;
+        let tensors = candle_core::safetensors::load_buffer(bytes, &Device::Cpu)
+            .map_err(|e| fmt(e.to_string()))?;
         Ok(WeightsFile {
             label: label.to_owned(),
             tensors,
@@ -141,7 +144,11 @@ impl SimpleBackend for Strict {
     ) -> candle_core::Result<Tensor> {
         let t = self.get_unchecked(name, dtype, dev)?;
         if t.shape() != &s {
-            candle_core::bail!("tensor '{name}' has shape {:?}, the model expects {:?}", t.dims(), s.dims());
+            candle_core::bail!(
+                "tensor '{name}' has shape {:?}, the model expects {:?}",
+                t.dims(),
+                s.dims()
+            );
         }
         Ok(t)
     }
@@ -178,9 +185,18 @@ mod tests {
     #[test]
     fn bundled_files_carry_provenance() {
         for (bytes, model) in [
-            (bundled::FACE_DETECTION_SHORT_RANGE, "face_detection_short_range"),
-            (bundled::FACE_DETECTION_FULL_RANGE, "face_detection_full_range"),
-            (bundled::FACE_LANDMARK_WITH_ATTENTION, "face_landmark_with_attention"),
+            (
+                bundled::FACE_DETECTION_SHORT_RANGE,
+                "face_detection_short_range",
+            ),
+            (
+                bundled::FACE_DETECTION_FULL_RANGE,
+                "face_detection_full_range",
+            ),
+            (
+                bundled::FACE_LANDMARK_WITH_ATTENTION,
+                "face_landmark_with_attention",
+            ),
             (bundled::SELFIE_SEGMENTATION, "selfie_segmentation"),
         ] {
             let f = file(bytes);
@@ -195,28 +211,43 @@ mod tests {
     fn refuses_wrong_model_missing_shape_and_unused() {
         let f = file(bundled::FACE_DETECTION_SHORT_RANGE);
         let e = f.build("selfie_segmentation", |_| Ok(())).err().unwrap();
-        assert!(e.to_string().contains("expected 'selfie_segmentation'"), "{e}");
+        assert!(
+            e.to_string().contains("expected 'selfie_segmentation'"),
+            "{e}"
+        );
 
         let f = file(bundled::FACE_DETECTION_SHORT_RANGE);
         let e = f
-            .build("face_detection_short_range", |vb| get_vec(&vb, &[24], "nope.bias").map(|_| ()))
+            .build("face_detection_short_range", |vb| {
+                get_vec(&vb, &[24], "nope.bias").map(|_| ())
+            })
             .err()
             .unwrap();
         assert!(e.to_string().contains("missing tensor 'nope.bias'"), "{e}");
 
         let f = file(bundled::FACE_DETECTION_SHORT_RANGE);
         let e = f
-            .build("face_detection_short_range", |vb| get_vec(&vb, &[25], "conv2d.bias").map(|_| ()))
+            .build("face_detection_short_range", |vb| {
+                get_vec(&vb, &[25], "conv2d.bias").map(|_| ())
+            })
             .err()
             .unwrap();
-        assert!(e.to_string().contains("'conv2d.bias' has shape [24]"), "{e}");
+        assert!(
+            e.to_string().contains("'conv2d.bias' has shape [24]"),
+            "{e}"
+        );
 
         let f = file(bundled::FACE_DETECTION_SHORT_RANGE);
         let e = f
-            .build("face_detection_short_range", |vb| get_vec(&vb, &[24], "conv2d.bias").map(|_| ()))
+            .build("face_detection_short_range", |vb| {
+                get_vec(&vb, &[24], "conv2d.bias").map(|_| ())
+            })
             .err()
             .unwrap();
-        assert!(e.to_string().contains("73 tensors the model does not use"), "{e}");
+        assert!(
+            e.to_string().contains("73 tensors the model does not use"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -21,7 +21,10 @@ fn crops_match_mediapipe() {
         let name = c["name"].as_str().unwrap();
         let img = picture(c["image"].as_str().unwrap());
         let roi = roi_pixels(&c["roi"], img.width(), img.height());
-        let (w, h) = (c["width"].as_u64().unwrap() as usize, c["height"].as_u64().unwrap() as usize);
+        let (w, h) = (
+            c["width"].as_u64().unwrap() as usize,
+            c["height"].as_u64().unwrap() as usize,
+        );
         let border = match c["border"].as_str().unwrap() {
             "zero" => Border::Zero,
             _ => Border::Replicate,
@@ -56,13 +59,28 @@ fn check_detector(model: DetectorModel, key: &str) {
     let want = floats(&m["logits"]);
     let (i, d) = worst(&raw.logits, &want);
     eprintln!("{key}: worst logit difference {d} at anchor {i}");
-    assert!(d < LOGIT_TOL, "{key}: anchor {i}: logit {} vs {}", raw.logits[i], want[i]);
-    for (a, r) in m["best_anchors"].as_array().unwrap().iter().zip(m["best_regressors"].as_array().unwrap()) {
+    assert!(
+        d < LOGIT_TOL,
+        "{key}: anchor {i}: logit {} vs {}",
+        raw.logits[i],
+        want[i]
+    );
+    for (a, r) in m["best_anchors"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(m["best_regressors"].as_array().unwrap())
+    {
         let a = a.as_u64().unwrap() as usize;
         let want = floats(r);
         let got = &raw.regressors[a * 16..(a + 1) * 16];
         let (i, d) = worst(got, &want);
-        assert!(d < REGRESSOR_TOL, "{key}: anchor {a} value {i}: {} vs {}", got[i], want[i]);
+        assert!(
+            d < REGRESSOR_TOL,
+            "{key}: anchor {a} value {i}: {} vs {}",
+            got[i],
+            want[i]
+        );
     }
 }
 
@@ -92,7 +110,9 @@ fn attention_mesh_matches_mediapipe() {
     let crop = warp::warp_u8(&img, &roi, 192, 192, Border::Replicate);
     let x = warp::to_tensor(&crop, 192, 192, 0.0, 1.0);
     let file = WeightsFile::from_bytes(bundled::FACE_LANDMARK_WITH_ATTENTION, "attention").unwrap();
-    let net = file.build("face_landmark_with_attention", AttentionMeshNet::new).unwrap();
+    let net = file
+        .build("face_landmark_with_attention", AttentionMeshNet::new)
+        .unwrap();
     let out = net.forward(&x);
     let o = &m["outputs"];
     for (name, got) in [
@@ -109,7 +129,11 @@ fn attention_mesh_matches_mediapipe() {
         assert!(d < LANDMARK_TOL, "{name}[{i}]: {} vs {}", got[i], want[i]);
     }
     let flag = floats(&o["face_flag"])[0];
-    assert!((out.face_flag - flag).abs() < FLAG_TOL, "face flag {} vs {flag}", out.face_flag);
+    assert!(
+        (out.face_flag - flag).abs() < FLAG_TOL,
+        "face flag {} vs {flag}",
+        out.face_flag
+    );
 }
 
 /// Person probabilities in [0, 1].

@@ -26,23 +26,47 @@ const MATTE_MAD_TOL: f32 = 0.01;
 
 fn pictures() -> Vec<(String, Value)> {
     let g = json("pipeline.json");
-    g["pictures"].as_object().unwrap().iter().map(|(k, v)| (k.clone(), v.clone())).collect()
+    g["pictures"]
+        .as_object()
+        .unwrap()
+        .iter()
+        .map(|(k, v)| (k.clone(), v.clone()))
+        .collect()
 }
 
 fn check_detections(name: &str, got: &[Detection], want: &Value) {
     let want = want.as_array().unwrap();
-    assert_eq!(got.len(), want.len(), "{name}: {} faces vs MediaPipe's {}", got.len(), want.len());
+    assert_eq!(
+        got.len(),
+        want.len(),
+        "{name}: {} faces vs MediaPipe's {}",
+        got.len(),
+        want.len()
+    );
     for (i, (d, w)) in got.iter().zip(want).enumerate() {
         let score = f(&w["score"]);
-        assert!((d.score - score).abs() < SCORE_TOL, "{name} face {i}: score {} vs {score}", d.score);
+        assert!(
+            (d.score - score).abs() < SCORE_TOL,
+            "{name} face {i}: score {} vs {score}",
+            d.score
+        );
         let b = floats(&w["box"]);
         let mine = [d.xmin, d.ymin, d.width, d.height];
         let (k, e) = worst(&mine, &b);
-        assert!(e < BOX_TOL, "{name} face {i}: box value {k}: {} vs {}", mine[k], b[k]);
+        assert!(
+            e < BOX_TOL,
+            "{name} face {i}: box value {k}: {} vs {}",
+            mine[k],
+            b[k]
+        );
         for (j, kp) in w["keypoints"].as_array().unwrap().iter().enumerate() {
             let kp = floats(kp);
             let (k, e) = worst(&d.keypoints[j], &kp);
-            assert!(e < BOX_TOL, "{name} face {i} keypoint {j}[{k}]: {:?} vs {kp:?}", d.keypoints[j]);
+            assert!(
+                e < BOX_TOL,
+                "{name} face {i} keypoint {j}[{k}]: {:?} vs {kp:?}",
+                d.keypoints[j]
+            );
         }
     }
 }
@@ -53,8 +77,16 @@ fn detections_match_mediapipe() {
     let full = FaceDetector::new(DetectorModel::FullRange).unwrap();
     for (name, p) in pictures() {
         let img = picture(&name);
-        check_detections(&format!("{name} (short range)"), &short.detect(&img).unwrap(), &p["short_range"]);
-        check_detections(&format!("{name} (full range)"), &full.detect(&img).unwrap(), &p["full_range"]);
+        check_detections(
+            &format!("{name} (short range)"),
+            &short.detect(&img).unwrap(),
+            &p["short_range"],
+        );
+        check_detections(
+            &format!("{name} (full range)"),
+            &full.detect(&img).unwrap(),
+            &p["full_range"],
+        );
     }
 }
 
@@ -86,11 +118,23 @@ fn static_landmarks_match_mediapipe() {
         let img = picture(&name);
         let faces = mesh.process(&img, max_faces).unwrap();
         let want = p["mesh"].as_array().unwrap();
-        assert_eq!(faces.len(), want.len(), "{name}: {} faces vs MediaPipe's {}", faces.len(), want.len());
+        assert_eq!(
+            faces.len(),
+            want.len(),
+            "{name}: {} faces vs MediaPipe's {}",
+            faces.len(),
+            want.len()
+        );
         for (i, (face, w)) in faces.iter().zip(want).enumerate() {
             let (e, side) = landmark_error(&face.landmarks, w, img.width(), img.height());
-            eprintln!("{name} face {i}: mean landmark error {:.5} of a {side:.0} px face", e);
-            assert!(e < LANDMARK_MEAN_TOL, "{name} face {i}: mean landmark error {e} of the face size");
+            eprintln!(
+                "{name} face {i}: mean landmark error {:.5} of a {side:.0} px face",
+                e
+            );
+            assert!(
+                e < LANDMARK_MEAN_TOL,
+                "{name} face {i}: mean landmark error {e} of the face size"
+            );
         }
     }
 }
@@ -99,12 +143,26 @@ fn static_landmarks_match_mediapipe() {
 fn tracking_matches_mediapipe_video_mode() {
     let g = json("video.json");
     let img = picture(g["image"].as_str().unwrap());
-    let (fw, fh) = (g["width"].as_u64().unwrap() as usize, g["height"].as_u64().unwrap() as usize);
+    let (fw, fh) = (
+        g["width"].as_u64().unwrap() as usize,
+        g["height"].as_u64().unwrap() as usize,
+    );
     let mut tracker = FaceTracker::new().unwrap();
     let mut tracked = 0;
-    for (t, (r, want)) in g["rects"].as_array().unwrap().iter().zip(g["landmarks"].as_array().unwrap()).enumerate() {
+    for (t, (r, want)) in g["rects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(g["landmarks"].as_array().unwrap())
+        .enumerate()
+    {
         let roi = roi_pixels(r, img.width(), img.height());
-        let frame = image::RgbImage::from_raw(fw as u32, fh as u32, warp::warp_u8(&img, &roi, fw, fh, Border::Zero)).unwrap();
+        let frame = image::RgbImage::from_raw(
+            fw as u32,
+            fh as u32,
+            warp::warp_u8(&img, &roi, fw, fh, Border::Zero),
+        )
+        .unwrap();
         let was_tracking = tracker.is_tracking();
         let face = tracker.process(&frame).unwrap();
         match (face, want.is_null()) {
@@ -116,10 +174,17 @@ fn tracking_matches_mediapipe_video_mode() {
                 eprintln!("frame {t}: tracking {was_tracking}, mean landmark error {e:.5} of {side:.0} px");
                 assert!(e < LANDMARK_MEAN_TOL, "frame {t}: mean landmark error {e}");
             }
-            (got, _) => panic!("frame {t}: face {} vs MediaPipe's {}", got.is_some(), !want.is_null()),
+            (got, _) => panic!(
+                "frame {t}: face {} vs MediaPipe's {}",
+                got.is_some(),
+                !want.is_null()
+            ),
         }
     }
-    assert!(tracked >= 8, "only {tracked} frames reused the previous landmarks");
+    assert!(
+        tracked >= 8,
+        "only {tracked} frames reused the previous landmarks"
+    );
 }
 
 #[test]
@@ -128,7 +193,9 @@ fn mattes_match_mediapipe() {
     for (name, _) in pictures() {
         let img = picture(&name);
         let m = seg.matte(&img).unwrap();
-        let want = image::open(golden_dir().join(format!("masks/{name}.png"))).unwrap().into_luma8();
+        let want = image::open(golden_dir().join(format!("masks/{name}.png")))
+            .unwrap()
+            .into_luma8();
         assert_eq!((m.width, m.height), want.dimensions());
         let (mut inter, mut union, mut mad) = (0usize, 0usize, 0.0f64);
         for (a, b) in m.data.iter().zip(want.as_raw()) {
@@ -139,7 +206,11 @@ fn mattes_match_mediapipe() {
             union += (pa || pb) as usize;
         }
         let mad = (mad / m.data.len() as f64) as f32;
-        let iou = if union == 0 { 1.0 } else { inter as f32 / union as f32 };
+        let iou = if union == 0 {
+            1.0
+        } else {
+            inter as f32 / union as f32
+        };
         eprintln!("{name}: matte IoU {iou:.5}, mean abs difference {mad:.5}");
         assert!(iou >= MATTE_IOU_MIN, "{name}: matte IoU {iou}");
         assert!(mad <= MATTE_MAD_TOL, "{name}: matte mean difference {mad}");

@@ -59,5 +59,8 @@ pub fn worst(a: &[f32], b: &[f32]) -> (usize, f32) {
         .zip(b)
         .map(|(x, y)| (x - y).abs())
         .enumerate()
-        .fold((0, 0.0), |m, (i, d)| if d > m.1 || d.is_nan() { (i, d) } else { m })
+        .fold(
+            (0, 0.0),
+            |m, (i, d)| if d > m.1 || d.is_nan() { (i, d) } else { m },
+        )
 }
