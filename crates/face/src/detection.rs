@@ -67,8 +67,8 @@ impl DetectorModel {
 
 #[derive(Debug, Clone)]
 enum Net {
-    Short(ShortRangeNet),
-    Full(FullRangeNet),
+    Short(Box<ShortRangeNet>),
+    Full(Box<FullRangeNet>),
 }
 
 /// A face detector: network, anchors and decoding.
@@ -109,13 +109,13 @@ impl FaceDetector {
     pub fn from_weights(model: DetectorModel, file: WeightsFile) -> Result<Self, FaceError> {
         let (net, anchors, size, min_score) = match model {
             DetectorModel::ShortRange => (
-                Net::Short(file.build(model.name(), ShortRangeNet::new)?),
+                Net::Short(Box::new(file.build(model.name(), ShortRangeNet::new)?)),
                 anchors::short_range(),
                 ShortRangeNet::INPUT,
                 0.5,
             ),
             DetectorModel::FullRange => (
-                Net::Full(file.build(model.name(), FullRangeNet::new)?),
+                Net::Full(Box::new(file.build(model.name(), FullRangeNet::new)?)),
                 anchors::full_range(),
                 FullRangeNet::INPUT,
                 0.6,

@@ -139,6 +139,40 @@ impl Packed {
     }
 }
 
+impl Packed {
+    /// The same convolution applied to the input scaled per channel: `W diag(s)`.
+    pub fn scale_inputs(&self, s: &[f32]) -> Packed {
+        assert_eq!(s.len(), self.k, "input scales");
+        let mut p = self.clone();
+        let gw = self.nb * W;
+        for (row, &f) in p.w.chunks_exact_mut(gw).zip(s.iter().cycle()) {
+            for v in row {
+                *v *= f;
+            }
+        }
+        p
+    }
+
+    /// The same convolution with its outputs (bias included) scaled per channel.
+    pub fn scale_outputs(&self, s: &[f32]) -> Packed {
+        assert_eq!(s.len(), self.cout, "output scales");
+        let mut p = self.clone();
+        let gw = self.nb * W;
+        for row in p.w.chunks_exact_mut(gw).enumerate() {
+            let g = row.0 / self.k;
+            for (j, v) in row.1.iter_mut().enumerate() {
+                if let Some(f) = s.get(g * gw + j) {
+                    *v *= f;
+                }
+            }
+        }
+        for (v, f) in p.bias.iter_mut().zip(s) {
+            *v *= f;
+        }
+        p
+    }
+}
+
 /// What a 1x1 convolution adds before its activation: nothing, a map of the same pixels, or the
 /// 2x2 max pool of a map twice the size (a stride-2 BlazeBlock's skip). Either has at most the
 /// output's channels; the rest count as zero (TFLite's channel padding before the add).
@@ -185,9 +219,26 @@ fn mm_nb<L: Lanes, const NB: usize, const MR: usize>(
         mm_tile::<L, NB, MR>(m, p0 + r, r, out);
         r += MR;
     }
-    while r < rows {
-        mm_tile::<L, NB, 1>(m, p0 + r, r, out);
-        r += 1;
+    // The last pixels in one tile of their own size, so the weights are read once more, not
+    // once per pixel (the attention branches have 2x2 and 4x4 maps).
+    match rows - r {
+        0 => {}
+        1 => mm_tile::<L, NB, 1>(m, p0 + r, r, out),
+        2 => mm_tile::<L, NB, 2>(m, p0 + r, r, out),
+        3 => mm_tile::<L, NB, 3>(m, p0 + r, r, out),
+        4 => mm_tile::<L, NB, 4>(m, p0 + r, r, out),
+        5 => mm_tile::<L, NB, 5>(m, p0 + r, r, out),
+        rest => {
+            // Only with MR > 6 (NB <= 2): split into a 6-pixel tile and the rest.
+            let six = rest.min(6);
+            if six == 6 {
+                mm_tile::<L, NB, 6>(m, p0 + r, r, out);
+            }
+            let r = r + six;
+            for k in 0..rows - r {
+                mm_tile::<L, NB, 1>(m, p0 + r + k, r + k, out);
+            }
+        }
     }
 }
 
@@ -405,19 +456,22 @@ pub fn conv(x: &Nhwc, pk: &Packed, g: Geom, act: &Act) -> Nhwc {
             while r < rows {
                 let n = step.min(rows - r);
                 let pb = &mut patch[..n * g.ow * kdim];
-                pb.fill(0.0);
                 for dy in 0..n {
                     let oy = r0 + r + dy;
                     let (ky0, ky1, iy0) = Geom::taps(oy, g.stride, g.pad_top, g.kh, x.h);
                     for ox in 0..g.ow {
                         let (kx0, kx1, ix0) = Geom::taps(ox, g.stride, g.pad_left, g.kw, x.w);
-                        let base = (dy * g.ow + ox) * kdim;
+                        let patch = &mut pb[(dy * g.ow + ox) * kdim..(dy * g.ow + ox + 1) * kdim];
+                        if ky1 - ky0 < g.kh || kx1 - kx0 < g.kw {
+                            // At the border: the padding taps are zeros.
+                            patch.fill(0.0);
+                        }
                         for ky in ky0..ky1 {
                             let iy = (iy0 + ky as isize) as usize;
                             let src = (iy * x.w + (ix0 + kx0 as isize) as usize) * x.c;
-                            let dst = base + (ky * g.kw + kx0) * x.c;
+                            let dst = (ky * g.kw + kx0) * x.c;
                             let len = (kx1 - kx0) * x.c;
-                            pb[dst..dst + len].copy_from_slice(&x.data[src..src + len]);
+                            patch[dst..dst + len].copy_from_slice(&x.data[src..src + len]);
                         }
                     }
                 }
@@ -457,6 +511,8 @@ struct Dw<'a> {
     dw: &'a DwWeights,
     g: Geom,
     act: &'a Act,
+    /// Add the input back after the activation (`x + act(dw(x))`, stride 1 only).
+    add_input: bool,
 }
 
 #[inline(always)]
@@ -526,7 +582,12 @@ fn dw_rows_k<L: Lanes, const K: usize>(d: &Dw, r0: usize, out: &mut [f32]) {
                         }
                     }
                 }
-                let v = d.act.apply(acc, cb);
+                let mut v = d.act.apply(acc, cb);
+                if d.add_input {
+                    // SAFETY: stride 1 with the output size equal to the input's: pixel
+                    // (oy, ox) exists in the input.
+                    v = v.add(unsafe { L::load_n(xp.add((oy * x.w + ox) * c + cb), n) });
+                }
                 // SAFETY: output row dy of this band, pixel ox, channels cb..cb+n.
                 unsafe { v.store_n(out.as_mut_ptr().add((dy * g.ow + ox) * c + cb), n) };
             }
@@ -536,10 +597,28 @@ fn dw_rows_k<L: Lanes, const K: usize>(d: &Dw, r0: usize, out: &mut [f32]) {
 
 /// A depthwise convolution with fused bias and activation.
 pub fn depthwise(x: &Nhwc, dw: &DwWeights, g: Geom, act: &Act) -> Nhwc {
+    depthwise_ext(x, dw, g, act, false)
+}
+
+/// [`depthwise`], with `add_input`: `x + act(dw(x))` (stride 1, same size).
+pub fn depthwise_ext(x: &Nhwc, dw: &DwWeights, g: Geom, act: &Act, add_input: bool) -> Nhwc {
     assert_eq!(x.c, dw.c, "depthwise channels");
     assert_eq!((g.kh, g.kw), (dw.kh, dw.kw), "depthwise kernel size");
+    if add_input {
+        assert_eq!(
+            (g.oh, g.ow, g.stride),
+            (x.h, x.w, 1),
+            "depthwise with its input added"
+        );
+    }
     let mut out = Nhwc::uninit(g.oh, g.ow, x.c);
-    let d = Dw { x, dw, g, act };
+    let d = Dw {
+        x,
+        dw,
+        g,
+        act,
+        add_input,
+    };
     let macs = g.oh * g.ow * x.c * g.kh * g.kw;
     for_rows(&mut out.data, g.oh, g.ow * x.c, macs * 4, |r0, o| {
         dw_rows_d(&d, r0, o)
@@ -593,6 +672,34 @@ pub fn add(a: &Nhwc, b: &Nhwc, act: &Act) -> Nhwc {
     out
 }
 
+/// `a * s + b` with one scale per channel of `a` (a gated skip connection).
+pub fn scale_add(a: &Nhwc, s: &[f32], b: &Nhwc) -> Nhwc {
+    assert_eq!((a.h, a.w, a.c), (b.h, b.w, b.c), "scale_add shapes");
+    assert_eq!(s.len(), a.c, "scale_add scales");
+    let mut out = Nhwc::uninit(a.h, a.w, a.c);
+    scale_add_d(&a.data, s, &b.data, a.c, &mut out.data);
+    out
+}
+
+#[inline(always)]
+fn scale_add_impl<L: Lanes>(a: &[f32], s: &[f32], b: &[f32], c: usize, out: &mut [f32]) {
+    for cb in (0..c).step_by(W) {
+        let n = (c - cb).min(W);
+        // SAFETY: channels cb..cb+n of the scales.
+        let sv = unsafe { L::load_n(s.as_ptr().add(cb), n) };
+        for p in 0..out.len() / c {
+            let o = p * c + cb;
+            // SAFETY: pixel p, channels cb..cb+n, in all three maps (same shapes).
+            unsafe {
+                let v = L::load_n(a.as_ptr().add(o), n).fma(sv, L::load_n(b.as_ptr().add(o), n));
+                v.store_n(out.as_mut_ptr().add(o), n);
+            }
+        }
+    }
+}
+
+dispatch!(fn scale_add_d(a: &[f32], s: &[f32], b: &[f32], c: usize, out: &mut [f32]) = scale_add_impl);
+
 /// Applies an activation in place.
 pub fn activate(x: &mut Nhwc, act: &Act) {
     let c = x.c;
@@ -601,22 +708,85 @@ pub fn activate(x: &mut Nhwc, act: &Act) {
     }
 }
 
-/// The logistic function, as TFLite's LOGISTIC computes it for f32.
+/// The logistic function (with [`fast_exp`]: within a few f32 ulps of `1 / (1 + e^-v)`).
+#[inline(always)]
 pub fn sigmoid(v: f32) -> f32 {
-    1.0 / (1.0 + (-v).exp())
+    1.0 / (1.0 + fast_exp(-v))
+}
+
+/// [`sigmoid`] of every value, in place (vectorised).
+pub fn sigmoid_in_place(v: &mut [f32]) {
+    sigmoid_d(v)
+}
+
+#[inline(always)]
+fn sigmoid_all(v: &mut [f32]) {
+    for x in v.iter_mut() {
+        *x = sigmoid(*x);
+    }
+}
+
+dispatch!(fn sigmoid_d(v: &mut [f32]) = plain sigmoid_all);
+
+/// `e^x` for f32 within about 2 ulps, branch-free so loops over it vectorise: `2^n e^r` with
+/// `n = round(x / ln 2)`, `|r| <= ln 2 / 2`, and a degree-6 Taylor polynomial for `e^r`.
+/// Inputs beyond the f32 range saturate (0 below -87.3, about 2^127 above 88.7).
+#[inline(always)]
+pub fn fast_exp(x: f32) -> f32 {
+    const LOG2E: f32 = std::f32::consts::LOG2_E;
+    const LN2_HI: f32 = 0.693_359_4;
+    const LN2_LO: f32 = -2.121_944_4e-4;
+    // 1.5 * 2^23: adding and subtracting rounds to an integer (nearest-even mode).
+    const ROUND: f32 = 12_582_912.0;
+    let x = x.clamp(-87.3, 88.7);
+    let n = (x * LOG2E + ROUND) - ROUND;
+    let r = x - n * LN2_HI - n * LN2_LO;
+    let p = 1.0 / 720.0;
+    let p = p * r + 1.0 / 120.0;
+    let p = p * r + 1.0 / 24.0;
+    let p = p * r + 1.0 / 6.0;
+    let p = p * r + 0.5;
+    let p = p * r + 1.0;
+    let p = p * r + 1.0;
+    // n is an integer in [-126, 128]; 2^n from its exponent bits.
+    let scale = f32::from_bits(((n as i32 + 127).clamp(1, 254) as u32) << 23);
+    p * scale
 }
 
 /// Mean over all pixels per channel (AVERAGE_POOL_2D over the whole map): a 1x1 map.
 pub fn global_avg_pool(x: &Nhwc) -> Nhwc {
-    let mut s = vec![0.0f64; x.c];
-    for p in 0..x.pixels() {
-        for (a, &v) in s.iter_mut().zip(&x.data[p * x.c..(p + 1) * x.c]) {
-            *a += v as f64;
+    let means = channel_means(x);
+    Nhwc::from_vec(1, 1, x.c, means)
+}
+
+/// Per-channel means, summed in f32 per row and in f64 across rows.
+pub fn channel_means(x: &Nhwc) -> Vec<f32> {
+    let mut total = vec![0.0f64; x.c];
+    channel_sums_d(&x.data, x.c, x.w, &mut total);
+    let n = x.pixels() as f64;
+    total.iter().map(|v| (v / n) as f32).collect()
+}
+
+/// Adds each channel's sum over `x` (rows of `w` pixels summed in f32) to `total` (f64).
+#[inline(always)]
+fn channel_sums_impl<L: Lanes>(x: &[f32], c: usize, w: usize, total: &mut [f64]) {
+    let row = w * c;
+    for cb in (0..c).step_by(W) {
+        let n = (c - cb).min(W);
+        for r in x.chunks_exact(row) {
+            let mut acc = L::zero();
+            for p in 0..w {
+                // SAFETY: pixel p of the row, channels cb..cb+n.
+                acc = acc.add(unsafe { L::load_n(r.as_ptr().add(p * c + cb), n) });
+            }
+            for (t, v) in total[cb..cb + n].iter_mut().zip(acc.to_array()) {
+                *t += v as f64;
+            }
         }
     }
-    let n = x.pixels() as f64;
-    Nhwc::from_vec(1, 1, x.c, s.iter().map(|v| (v / n) as f32).collect())
 }
+
+dispatch!(fn channel_sums_d(x: &[f32], c: usize, w: usize, total: &mut [f64]) = channel_sums_impl);
 
 /// `x * scale` with one scale per channel (a squeeze-and-excitation gate).
 pub fn scale_channels(x: &Nhwc, scale: &[f32]) -> Nhwc {
@@ -644,20 +814,42 @@ pub fn resize_bilinear(x: &Nhwc, oh: usize, ow: usize) -> Nhwc {
     let ys: Vec<_> = (0..oh).map(|o| taps(o, x.h, oh)).collect();
     let xs: Vec<_> = (0..ow).map(|o| taps(o, x.w, ow)).collect();
     let mut out = Nhwc::uninit(oh, ow, x.c);
+    resize_d(x, &ys, &xs, &mut out.data);
+    out
+}
+
+type Tap = (usize, usize, f32);
+
+#[inline(always)]
+fn resize_impl<L: Lanes>(x: &Nhwc, ys: &[Tap], xs: &[Tap], out: &mut [f32]) {
+    let (c, ow) = (x.c, xs.len());
     for (oy, &(y0, y1, dy)) in ys.iter().enumerate() {
+        let (r0, r1) = (y0 * x.w * c, y1 * x.w * c);
         for (ox, &(x0, x1, dx)) in xs.iter().enumerate() {
-            let (a, b, c, d) = (x.at(y0, x0), x.at(y0, x1), x.at(y1, x0), x.at(y1, x1));
-            let o = &mut out.data[(oy * ow + ox) * x.c..(oy * ow + ox + 1) * x.c];
-            for ch in 0..x.c {
-                o[ch] = a[ch] * (1.0 - dy) * (1.0 - dx)
-                    + c[ch] * dy * (1.0 - dx)
-                    + b[ch] * (1.0 - dy) * dx
-                    + d[ch] * dy * dx;
+            // TFLite's weights and summation order: (y0,x0), (y1,x0), (y0,x1), (y1,x1).
+            let w00 = L::splat((1.0 - dy) * (1.0 - dx));
+            let w10 = L::splat(dy * (1.0 - dx));
+            let w01 = L::splat((1.0 - dy) * dx);
+            let w11 = L::splat(dy * dx);
+            for cb in (0..c).step_by(W) {
+                let n = (c - cb).min(W);
+                // SAFETY: the taps are inside the map (clamped), channels cb..cb+n; the output
+                // pixel (oy, ox) exists.
+                unsafe {
+                    let p = x.data.as_ptr();
+                    let a = L::load_n(p.add(r0 + x0 * c + cb), n);
+                    let b = L::load_n(p.add(r0 + x1 * c + cb), n);
+                    let cc = L::load_n(p.add(r1 + x0 * c + cb), n);
+                    let d = L::load_n(p.add(r1 + x1 * c + cb), n);
+                    let v = a.mul(w00).add(cc.mul(w10)).add(b.mul(w01)).add(d.mul(w11));
+                    v.store_n(out.as_mut_ptr().add((oy * ow + ox) * c + cb), n);
+                }
             }
         }
     }
-    out
 }
+
+dispatch!(fn resize_d(x: &Nhwc, ys: &[Tap], xs: &[Tap], out: &mut [f32]) = resize_impl);
 
 /// DEPTH_TO_SPACE with block 2: `out[2y+i][2x+j][c] = in[y][x][(2i+j)*C + c]`.
 pub fn depth_to_space2(x: &Nhwc) -> Nhwc {
@@ -859,6 +1051,22 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn fast_exp_and_sigmoid_are_accurate() {
+        let mut worst = 0.0f64;
+        let mut x = -87.0f32;
+        while x < 88.0 {
+            let want = (x as f64).exp();
+            let rel = ((fast_exp(x) as f64 - want) / want).abs();
+            worst = worst.max(rel);
+            x += 0.0137;
+        }
+        assert!(worst < 5e-7, "worst relative error {worst}");
+        assert!(fast_exp(-200.0) < 1e-37);
+        assert!((sigmoid(0.0) - 0.5).abs() < 1e-7);
+        assert!(sigmoid(-200.0) >= 0.0 && sigmoid(200.0) <= 1.0);
     }
 
     #[test]

@@ -77,6 +77,29 @@ impl Conv2d {
         self.forward_with(x, res.map_or(Residual::None, Residual::Same), act)
     }
 
+    /// A 1x1 convolution of `x` scaled per input channel by `s` (a squeeze-and-excitation
+    /// gate folded into the weights), plus `res`.
+    pub fn forward_gated(&self, x: &Nhwc, s: &[f32], res: Option<&Nhwc>, act: &Act) -> Nhwc {
+        assert!(
+            self.k == 1 && self.stride == 1,
+            "gated input on a non-pointwise convolution"
+        );
+        let pk = self.pk.scale_inputs(s);
+        kernels::pointwise(x, &pk, res.map_or(Residual::None, Residual::Same), act)
+    }
+
+    /// `relu(conv(x)) * s` per output channel, for positive `s` (folded into the weights:
+    /// `relu(s z) = s relu(z)` when `s > 0`).
+    pub fn forward_relu_scaled(&self, x: &Nhwc, s: &[f32]) -> Nhwc {
+        assert!(
+            self.k == 1 && self.stride == 1,
+            "scaled output on a non-pointwise convolution"
+        );
+        assert!(s.iter().all(|&v| v > 0.0), "output scales must be positive");
+        let pk = self.pk.scale_outputs(s);
+        kernels::pointwise(x, &pk, Residual::None, &Act::Relu)
+    }
+
     /// `act(conv(x) + res)` with any kind of residual.
     pub fn forward_with(&self, x: &Nhwc, res: Residual, act: &Act) -> Nhwc {
         if self.k == 1 && self.stride == 1 {
@@ -132,6 +155,12 @@ impl DepthwiseConv2d {
     pub fn forward(&self, x: &Nhwc, act: &Act) -> Nhwc {
         let g = self.pad.geom(x.h, x.w, self.w.kh, self.stride);
         kernels::depthwise(x, &self.w, g, act)
+    }
+
+    /// `x + act(dw(x))` (stride 1).
+    pub fn forward_plus_input(&self, x: &Nhwc, act: &Act) -> Nhwc {
+        let g = self.pad.geom(x.h, x.w, self.w.kh, self.stride);
+        kernels::depthwise_ext(x, &self.w, g, act, true)
     }
 }
 

@@ -89,8 +89,10 @@ impl SelfieSegmenter {
 }
 
 /// OpenCV's `resize(INTER_LINEAR)` of a one-channel f32 map: source position
-/// `(d + 0.5) * src / dst - 0.5`, clamped to the edge pixels.
+/// `(d + 0.5) * src / dst - 0.5`, clamped to the edge pixels; rows interpolated first, then
+/// columns.
 pub fn resize_linear(src: &[f32], sw: usize, sh: usize, dw: usize, dh: usize) -> Vec<f32> {
+    assert_eq!(src.len(), sw * sh, "resize source size");
     if (sw, sh) == (dw, dh) {
         return src.to_vec();
     }
@@ -110,27 +112,36 @@ pub fn resize_linear(src: &[f32], sw: usize, sh: usize, dw: usize, dh: usize) ->
         (i, (i + 1).min(s - 1), t)
     };
     let xs: Vec<_> = (0..dw).map(|x| taps(x, sw, dw)).collect();
-    let mut rows: Vec<Vec<f32>> = Vec::with_capacity(sh);
-    for y in 0..sh {
-        let r = &src[y * sw..(y + 1) * sw];
-        rows.push(
-            xs.iter()
-                .map(|&(a, b, t)| r[a] * (1.0 - t) + r[b] * t)
-                .collect(),
-        );
+    // Each source row resampled to the output width, once.
+    let mut rows = vec![0.0f32; sh * dw];
+    for (r, out) in src.chunks_exact(sw).zip(rows.chunks_exact_mut(dw)) {
+        for (o, &(a, b, t)) in out.iter_mut().zip(&xs) {
+            *o = r[a] * (1.0 - t) + r[b] * t;
+        }
     }
-    let mut out = Vec::with_capacity(dw * dh);
-    for y in 0..dh {
+    let mut out = vec![0.0f32; dw * dh];
+    for (y, o) in out.chunks_exact_mut(dw).enumerate() {
         let (a, b, t) = taps(y, sh, dh);
-        out.extend(
-            rows[a]
-                .iter()
-                .zip(&rows[b])
-                .map(|(p, q)| p * (1.0 - t) + q * t),
+        blend_d(
+            &rows[a * dw..(a + 1) * dw],
+            &rows[b * dw..(b + 1) * dw],
+            1.0 - t,
+            t,
+            o,
         );
     }
     out
 }
+
+/// `out = a * wa + b * wb`, element by element.
+#[inline(always)]
+fn blend(a: &[f32], b: &[f32], wa: f32, wb: f32, out: &mut [f32]) {
+    for ((o, &x), &y) in out.iter_mut().zip(a).zip(b) {
+        *o = x * wa + y * wb;
+    }
+}
+
+crate::simd::dispatch!(fn blend_d(a: &[f32], b: &[f32], wa: f32, wb: f32, out: &mut [f32]) = plain blend);
 
 #[cfg(test)]
 mod tests {

@@ -205,7 +205,7 @@ fn helper(s: &Shared) {
                 break;
             }
             spins = spins.wrapping_add(1);
-            if spins % 64 == 0 && idle.elapsed() > SPIN {
+            if spins.is_multiple_of(64) && idle.elapsed() > SPIN {
                 if s.shutdown.load(Ordering::Acquire) {
                     return;
                 }

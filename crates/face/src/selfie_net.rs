@@ -27,9 +27,10 @@ impl Excite {
         })
     }
 
-    /// The gates for the pooled input.
-    fn gates(&self, pooled: &Nhwc) -> Vec<f32> {
-        let h = self.fc1.forward(pooled, &Act::Relu);
+    /// The gates for the per-channel means of the input.
+    fn gates(&self, means: Vec<f32>) -> Vec<f32> {
+        let pooled = Nhwc::from_vec(1, 1, means.len(), means);
+        let h = self.fc1.forward(&pooled, &Act::Relu);
         self.fc2
             .forward(&h, &Act::None)
             .data
@@ -104,12 +105,16 @@ impl Bottleneck {
 
     fn forward(&self, x: &Nhwc) -> Nhwc {
         let h = self.expand.forward(x, &self.act);
-        let mut h = self.dw.forward(&h, &self.act);
-        if let Some(e) = &self.excite {
-            h = kernels::scale_channels(&h, &e.gates(&kernels::global_avg_pool(&h)));
+        let h = self.dw.forward(&h, &self.act);
+        let res = self.residual.then_some(x);
+        match &self.excite {
+            // The gates scale the projection's input channels: folded into its weights.
+            Some(e) => {
+                let gates = e.gates(kernels::channel_means(&h));
+                self.project.forward_gated(&h, &gates, res, &Act::None)
+            }
+            None => self.project.forward_res(&h, res, &Act::None),
         }
-        self.project
-            .forward_res(&h, self.residual.then_some(x), &Act::None)
     }
 }
 
@@ -134,14 +139,20 @@ impl UpStage {
     }
 
     fn forward(&self, x: &Nhwc, skip: &Nhwc) -> Nhwc {
-        let up = kernels::resize_bilinear(x, skip.h, skip.w);
-        let y = self.reduce.forward(&up, &Act::None);
-        let sum = kernels::add(skip, &y, &Act::None);
-        let gates = self.excite.gates(&kernels::global_avg_pool(&sum));
-        let z = kernels::add(&kernels::scale_channels(skip, &gates), &y, &Act::None);
+        // The 1x1 convolution commutes with the bilinear upsampling (both linear, the
+        // interpolation weights sum to one), so it runs at the low resolution on the wider
+        // input: a quarter of the work.
+        let y = kernels::resize_bilinear(&self.reduce.forward(x, &Act::None), skip.h, skip.w);
+        // mean(skip + y) = mean(skip) + mean(y).
+        let means: Vec<f32> = kernels::channel_means(skip)
+            .iter()
+            .zip(kernels::channel_means(&y))
+            .map(|(a, b)| a + b)
+            .collect();
+        let gates = self.excite.gates(means);
+        let z = kernels::scale_add(skip, &gates, &y);
         let r = self.mix.forward(&z, &Act::Relu);
-        let d = self.dw.forward(&r, &Act::Relu);
-        kernels::add(&r, &d, &Act::None)
+        self.dw.forward_plus_input(&r, &Act::Relu)
     }
 }
 
@@ -153,9 +164,9 @@ pub struct SelfieNet {
     top: Conv2d,
     top_gate: Conv2d,
     up: [UpStage; 3],
-    /// The 2x2 stride-2 transposed convolution to one channel: `[2][2][16]` and its bias.
-    segment: Vec<f32>,
-    segment_bias: f32,
+    /// The 2x2 stride-2 transposed convolution to one channel, as a 1x1 convolution from 16
+    /// channels to the 4 taps (`[2][2]`, each with the bias).
+    segment: kernels::Packed,
 }
 
 impl SelfieNet {
@@ -177,8 +188,12 @@ impl SelfieNet {
                 UpStage::new(&vb, 35, 9, 24, 16)?,
                 UpStage::new(&vb, 39, 10, 16, 16)?,
             ],
-            segment: get_vec(&seg, &[1, 2, 2, 16], "kernel")?,
-            segment_bias: get_vec(&seg, &[1], "bias")?[0],
+            segment: kernels::Packed::new(
+                &get_vec(&seg, &[1, 2, 2, 16], "kernel")?,
+                &[get_vec(&seg, &[1], "bias")?[0]; 4],
+                4,
+                16,
+            ),
         })
     }
 
@@ -199,29 +214,27 @@ impl SelfieNet {
             .iter()
             .map(|&v| sigmoid(v))
             .collect();
-        let mut h = kernels::scale_channels(&self.top.forward(&h, &Act::Relu), &gates);
+        // relu(z) * g = relu(g z) for the (positive) sigmoid gates: folded into the weights.
+        let mut h = self.top.forward_relu_scaled(&h, &gates);
         h = self.up[0].forward(&h, &s32);
         h = self.up[1].forward(&h, &s64);
         h = self.up[2].forward(&h, &s128);
         self.transpose_conv(&h)
     }
 
-    /// `out[2y+i][2x+j] = sigmoid(bias + sum_c h[y][x][c] w[i][j][c])`.
+    /// `out[2y+i][2x+j] = sigmoid(bias + sum_c h[y][x][c] w[i][j][c])`: the four taps of
+    /// each input pixel as a 1x1 convolution to four channels, then unshuffled.
     fn transpose_conv(&self, h: &Nhwc) -> Nhwc {
+        let mut taps = kernels::pointwise(h, &self.segment, kernels::Residual::None, &Act::None);
+        kernels::sigmoid_in_place(&mut taps.data);
         let (oh, ow) = (h.h * 2, h.w * 2);
-        let mut out = Nhwc::zeros(oh, ow, 1);
+        let mut out = Nhwc::uninit(oh, ow, 1);
         for y in 0..h.h {
-            for x in 0..h.w {
-                let px = h.at(y, x);
-                for i in 0..2 {
-                    for j in 0..2 {
-                        let w = &self.segment[(i * 2 + j) * h.c..(i * 2 + j + 1) * h.c];
-                        let mut s = self.segment_bias;
-                        for (a, b) in px.iter().zip(w) {
-                            s += a * b;
-                        }
-                        out.data[(2 * y + i) * ow + 2 * x + j] = sigmoid(s);
-                    }
+            let src = &taps.data[y * h.w * 4..(y + 1) * h.w * 4];
+            for i in 0..2 {
+                let row = &mut out.data[(2 * y + i) * ow..(2 * y + i + 1) * ow];
+                for (pair, t) in row.chunks_exact_mut(2).zip(src.chunks_exact(4)) {
+                    pair.copy_from_slice(&t[2 * i..2 * i + 2]);
                 }
             }
         }

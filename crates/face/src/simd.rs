@@ -244,6 +244,26 @@ mod zmm {
 /// must be `#[inline(always)]`, so the intrinsics are inlined into the AVX-512 copy (an
 /// intrinsic left in a function without the feature is an out-of-line call per operation).
 macro_rules! dispatch {
+    // `$imp` takes no lane type: the same code, compiled with AVX-512 enabled or not (for
+    // loops the compiler vectorises itself).
+    ($(#[$meta:meta])* $vis:vis fn $name:ident($($arg:ident : $ty:ty),* $(,)?) $(-> $ret:ty)? = plain $imp:ident) => {
+        $(#[$meta])*
+        #[allow(clippy::too_many_arguments)]
+        $vis fn $name($($arg: $ty),*) $(-> $ret)? {
+            #[cfg(target_arch = "x86_64")]
+            #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+            #[allow(clippy::too_many_arguments)]
+            unsafe fn v4($($arg: $ty),*) $(-> $ret)? {
+                $imp($($arg),*)
+            }
+            match $crate::simd::level() {
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: the level was detected on this CPU.
+                $crate::simd::Level::Avx512 => unsafe { v4($($arg),*) },
+                _ => $imp($($arg),*),
+            }
+        }
+    };
     ($(#[$meta:meta])* $vis:vis fn $name:ident($($arg:ident : $ty:ty),* $(,)?) $(-> $ret:ty)? = $imp:ident) => {
         $(#[$meta])*
         #[allow(clippy::too_many_arguments)]
