@@ -1053,6 +1053,68 @@ mod tests {
         }
     }
 
+    /// The AVX-512 kernels against the portable ones on the same data (only FMA rounding
+    /// differs).
+    #[test]
+    fn avx512_and_portable_kernels_agree() {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if crate::simd::level() != crate::simd::Level::Avx512 {
+                return;
+            }
+            use crate::simd::{Arr, Zmm};
+            let x = Nhwc::from_vec(9, 7, 40, rnd(9 * 7 * 40, 31));
+            let res = Nhwc::from_vec(18, 14, 36, rnd(18 * 14 * 36, 32));
+            let pk = Packed::new(&rnd(50 * 40, 33), &rnd(50, 34), 50, 40);
+            let act = Act::prelu(&rnd(50, 35));
+            let m = Mm {
+                x: &x.data,
+                xs: 40,
+                pk: &pk,
+                res: Residual::MaxPool2(&res),
+                ow: 7,
+                act: &act,
+            };
+            let mut a = vec![0.0f32; 63 * 50];
+            let mut b = a.clone();
+            mm_rows::<Arr>(&m, 0, &mut a);
+            #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+            fn z_mm(m: &Mm, out: &mut [f32]) {
+                mm_rows::<Zmm>(m, 0, out)
+            }
+            // SAFETY: AVX-512F detected above.
+            unsafe { z_mm(&m, &mut b) };
+            let (i, d) = worst(&a, &b);
+            assert!(d < 1e-5, "1x1: index {i}: {} vs {}", a[i], b[i]);
+
+            let dw = DwWeights {
+                kh: 5,
+                kw: 5,
+                c: 40,
+                w: rnd(25 * 40, 36),
+                bias: rnd(40, 37),
+            };
+            let d = Dw {
+                x: &x,
+                dw: &dw,
+                g: Geom::same(9, 7, 5, 2),
+                act: &Act::HardSwish,
+                add_input: false,
+            };
+            let mut a = vec![0.0f32; 5 * 4 * 40];
+            let mut b = a.clone();
+            dw_rows::<Arr>(&d, 0, &mut a);
+            #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+            fn z_dw(d: &Dw, out: &mut [f32]) {
+                dw_rows::<Zmm>(d, 0, out)
+            }
+            // SAFETY: as above.
+            unsafe { z_dw(&d, &mut b) };
+            let (i, e) = worst(&a, &b);
+            assert!(e < 1e-5, "depthwise: index {i}: {} vs {}", a[i], b[i]);
+        }
+    }
+
     #[test]
     fn fast_exp_and_sigmoid_are_accurate() {
         let mut worst = 0.0f64;
