@@ -10,8 +10,8 @@ other passes), matching the rows of `gagavatar bench face`:
   short range     FaceDetection(model_selection=0)
   full range      FaceDetection(model_selection=1)
   photo           FaceMesh(static_image_mode=True, max_num_faces=1, refine_landmarks=True)
-  matte           SelfieSegmentation(model_selection=0) (includes resizing the mask back to the
-                  frame size, which the Rust row does not)
+  matte           SelfieSegmentation(model_selection=0): sampling, network and the mask resized
+                  back to the frame size (the Rust row "matte at frame size")
 
 Threads: MediaPipe's Python API has no thread setting; its TFLite/XNNPACK inference picks the
 thread count from the CPUs it may use, so run it pinned to the same number of cores as

@@ -329,7 +329,7 @@ fn bench_face(args: FaceBench) -> Result<()> {
     let mesh = FaceMesh::new()?;
     let full = FaceDetector::new(DetectorModel::FullRange)?;
     let seg = SelfieSegmenter::new()?;
-    let total = (runs * frames.len() * 5) as u64;
+    let total = (runs * frames.len() * 6) as u64;
     let pb = ProgressBar::new(total);
     pb.set_style(ProgressStyle::with_template(
         "{msg} [{bar:30}] {pos}/{len} ETA {eta}",
@@ -377,8 +377,12 @@ fn bench_face(args: FaceBench) -> Result<()> {
         mesh.process(f, 1)?;
         Ok(())
     })?;
-    let mut matte = measure("matte", &mut |f| {
+    let mut matte = measure("matte 256", &mut |f| {
         seg.mask256(f)?;
+        Ok(())
+    })?;
+    let mut matte_full = measure("matte", &mut |f| {
+        seg.matte(f)?;
         Ok(())
     })?;
     pb.finish_and_clear();
@@ -391,6 +395,7 @@ fn bench_face(args: FaceBench) -> Result<()> {
         ("detection, full range (192)", &mut full_t),
         ("photo: short-range detection + 478 landmarks", &mut stat),
         ("matte 256x256 (sampling + network)", &mut matte),
+        ("matte at frame size (+ resize back)", &mut matte_full),
     ];
     println!(
         "face, {} frames of {fw}x{fh}, {threads} threads, {} timed passes:",

@@ -65,13 +65,14 @@ impl Act {
 }
 
 /// Runs `f(first_row, rows_slice)` over row bands of `out` (rows of `row_len` values), split
-/// over the face thread pool when the op is big enough to pay for it.
-fn for_rows(
-    out: &mut [f32],
+/// over the face thread pool when the op is big enough to pay for it (`macs`: its work in
+/// multiply-adds or an equivalent).
+pub(crate) fn for_rows<T: Send>(
+    out: &mut [T],
     rows: usize,
     row_len: usize,
     macs: usize,
-    f: impl Fn(usize, &mut [f32]) + Sync,
+    f: impl Fn(usize, &mut [T]) + Sync,
 ) {
     let threads = crate::pool::threads();
     if threads <= 1 || macs < PARALLEL_MACS || rows < 2 || row_len == 0 {
@@ -80,10 +81,10 @@ fn for_rows(
     }
     let parts = threads.min(rows);
     let per = rows.div_ceil(parts);
-    let bands: Vec<std::sync::Mutex<&mut [f32]>> = out
+    let bands = out
         .chunks_mut(per * row_len)
         .map(std::sync::Mutex::new)
-        .collect();
+        .collect::<Vec<std::sync::Mutex<&mut [T]>>>();
     crate::pool::run(bands.len(), &|i| {
         if let Ok(mut band) = bands[i].lock() {
             f(i * per, &mut band);
@@ -677,7 +678,20 @@ pub fn scale_add(a: &Nhwc, s: &[f32], b: &Nhwc) -> Nhwc {
     assert_eq!((a.h, a.w, a.c), (b.h, b.w, b.c), "scale_add shapes");
     assert_eq!(s.len(), a.c, "scale_add scales");
     let mut out = Nhwc::uninit(a.h, a.w, a.c);
-    scale_add_d(&a.data, s, &b.data, a.c, &mut out.data);
+    let c = a.c;
+    for_rows(
+        &mut out.data,
+        a.pixels(),
+        c,
+        a.data.len() * 4,
+        |p0, band| {
+            let (a, b) = (
+                &a.data[p0 * c..p0 * c + band.len()],
+                &b.data[p0 * c..p0 * c + band.len()],
+            );
+            scale_add_d(a, s, b, c, band)
+        },
+    );
     out
 }
 
@@ -716,7 +730,10 @@ pub fn sigmoid(v: f32) -> f32 {
 
 /// [`sigmoid`] of every value, in place (vectorised).
 pub fn sigmoid_in_place(v: &mut [f32]) {
-    sigmoid_d(v)
+    const CHUNK: usize = 4096;
+    let rows = v.len().div_ceil(CHUNK);
+    // The last row may be short: bands are cut by whole rows, so only the final band is.
+    for_rows(v, rows, CHUNK, rows * CHUNK * 20, |_, band| sigmoid_d(band));
 }
 
 #[inline(always)]
@@ -730,16 +747,18 @@ dispatch!(fn sigmoid_d(v: &mut [f32]) = plain sigmoid_all);
 
 /// `e^x` for f32 within about 2 ulps, branch-free so loops over it vectorise: `2^n e^r` with
 /// `n = round(x / ln 2)`, `|r| <= ln 2 / 2`, and a degree-6 Taylor polynomial for `e^r`.
-/// Inputs beyond the f32 range saturate (0 below -87.3, about 2^127 above 88.7).
+/// Inputs are clamped to [-87.3, 88.3] (results from about 1.2e-38 to 2.2e38).
 #[inline(always)]
 pub fn fast_exp(x: f32) -> f32 {
     const LOG2E: f32 = std::f32::consts::LOG2_E;
     const LN2_HI: f32 = 0.693_359_4;
     const LN2_LO: f32 = -2.121_944_4e-4;
-    // 1.5 * 2^23: adding and subtracting rounds to an integer (nearest-even mode).
+    // 1.5 * 2^23: adding it rounds to an integer (nearest-even) and leaves that integer in
+    // the low mantissa bits.
     const ROUND: f32 = 12_582_912.0;
-    let x = x.clamp(-87.3, 88.7);
-    let n = (x * LOG2E + ROUND) - ROUND;
+    let x = x.clamp(-87.3, 88.3);
+    let t = x * LOG2E + ROUND;
+    let n = t - ROUND;
     let r = x - n * LN2_HI - n * LN2_LO;
     let p = 1.0 / 720.0;
     let p = p * r + 1.0 / 120.0;
@@ -748,8 +767,9 @@ pub fn fast_exp(x: f32) -> f32 {
     let p = p * r + 0.5;
     let p = p * r + 1.0;
     let p = p * r + 1.0;
-    // n is an integer in [-126, 128]; 2^n from its exponent bits.
-    let scale = f32::from_bits(((n as i32 + 127).clamp(1, 254) as u32) << 23);
+    // 2^n: n + 127 (in 1..=254 after the clamp) moved into the exponent field; the bits of
+    // ROUND above it shift out.
+    let scale = f32::from_bits(t.to_bits().wrapping_add(127) << 23);
     p * scale
 }
 
@@ -761,8 +781,31 @@ pub fn global_avg_pool(x: &Nhwc) -> Nhwc {
 
 /// Per-channel means, summed in f32 per row and in f64 across rows.
 pub fn channel_means(x: &Nhwc) -> Vec<f32> {
+    let threads = crate::pool::threads();
+    let parts = if x.data.len() * 2 >= PARALLEL_MACS {
+        threads.min(x.h).max(1)
+    } else {
+        1
+    };
+    let per = x.h.div_ceil(parts);
+    let partial: Vec<std::sync::Mutex<Vec<f64>>> = (0..parts)
+        .map(|_| std::sync::Mutex::new(vec![0.0f64; x.c]))
+        .collect();
+    crate::pool::run(parts, &|i| {
+        let rows = x.w * x.c;
+        let (y0, y1) = (i * per, ((i + 1) * per).min(x.h));
+        if let Ok(mut t) = partial[i].lock() {
+            channel_sums_d(&x.data[y0 * rows..y1 * rows], x.c, x.w, &mut t);
+        }
+    });
     let mut total = vec![0.0f64; x.c];
-    channel_sums_d(&x.data, x.c, x.w, &mut total);
+    for p in partial {
+        if let Ok(p) = p.into_inner() {
+            for (t, v) in total.iter_mut().zip(p) {
+                *t += v;
+            }
+        }
+    }
     let n = x.pixels() as f64;
     total.iter().map(|v| (v / n) as f32).collect()
 }
@@ -814,7 +857,16 @@ pub fn resize_bilinear(x: &Nhwc, oh: usize, ow: usize) -> Nhwc {
     let ys: Vec<_> = (0..oh).map(|o| taps(o, x.h, oh)).collect();
     let xs: Vec<_> = (0..ow).map(|o| taps(o, x.w, ow)).collect();
     let mut out = Nhwc::uninit(oh, ow, x.c);
-    resize_d(x, &ys, &xs, &mut out.data);
+    for_rows(
+        &mut out.data,
+        oh,
+        ow * x.c,
+        oh * ow * x.c * 8,
+        |r0, band| {
+            let rows = band.len() / (ow * x.c);
+            resize_d(x, &ys[r0..r0 + rows], &xs, band)
+        },
+    );
     out
 }
 

@@ -120,16 +120,18 @@ pub fn resize_linear(src: &[f32], sw: usize, sh: usize, dw: usize, dh: usize) ->
         }
     }
     let mut out = vec![0.0f32; dw * dh];
-    for (y, o) in out.chunks_exact_mut(dw).enumerate() {
-        let (a, b, t) = taps(y, sh, dh);
-        blend_d(
-            &rows[a * dw..(a + 1) * dw],
-            &rows[b * dw..(b + 1) * dw],
-            1.0 - t,
-            t,
-            o,
-        );
-    }
+    crate::kernels::for_rows(&mut out, dh, dw, dw * dh * 4, |y0, band| {
+        for (dy, o) in band.chunks_exact_mut(dw).enumerate() {
+            let (a, b, t) = taps(y0 + dy, sh, dh);
+            blend_d(
+                &rows[a * dw..(a + 1) * dw],
+                &rows[b * dw..(b + 1) * dw],
+                1.0 - t,
+                t,
+                o,
+            );
+        }
+    });
     out
 }
 

@@ -264,20 +264,45 @@ impl AttentionMeshNet {
         let m_lips = landmarks_to_matrix(&scaled, ROTATION_POINTS[0], &LIPS);
         let m_left = landmarks_to_matrix(&scaled, ROTATION_POINTS[1], &LEFT_EYE);
         let m_right = landmarks_to_matrix(&scaled, ROTATION_POINTS[2], &RIGHT_EYE);
-        let lips = {
-            let f = transform_tensor_bilinear(&features, &m_lips, BRANCH_SIZE, BRANCH_SIZE);
-            let f = run(&self.lips.0.blocks, &f);
-            transform_landmarks(&self.lips.1.forward(&f), &m_lips)
-        };
-        let eye = |branch: &(Stem, Tail, Tail), m: &[f32; 16]| {
-            let f = transform_tensor_bilinear(&features, m, BRANCH_SIZE, BRANCH_SIZE);
-            let f = run(&branch.0.blocks, &f);
-            let eye = branch.1.forward(&f);
-            let iris = branch.2.forward(&f);
-            (transform_landmarks(&eye, m), transform_landmarks(&iris, m))
-        };
-        let (left_eye, left_iris) = eye(&self.left, &m_left);
-        let (right_eye, right_iris) = eye(&self.right, &m_right);
+        // The branches are independent: with two threads, phase 1 runs the whole lip branch
+        // beside both eye stems, phase 2 the four eye and iris heads (about equal work each).
+        use std::sync::Mutex;
+        let sample =
+            |m: &[f32; 16]| transform_tensor_bilinear(&features, m, BRANCH_SIZE, BRANCH_SIZE);
+        let lips = Mutex::new(Vec::new());
+        let stems: [Mutex<Option<Nhwc>>; 2] = [Mutex::new(None), Mutex::new(None)];
+        let eyes = [&self.left, &self.right];
+        let mats = [&m_left, &m_right];
+        crate::pool::run(3, &|i| match i {
+            0 => {
+                let f = run(&self.lips.0.blocks, &sample(&m_lips));
+                let out = transform_landmarks(&self.lips.1.forward(&f), &m_lips);
+                if let Ok(mut l) = lips.lock() {
+                    *l = out;
+                }
+            }
+            _ => {
+                let f = run(&eyes[i - 1].0.blocks, &sample(mats[i - 1]));
+                if let Ok(mut s) = stems[i - 1].lock() {
+                    *s = Some(f);
+                }
+            }
+        });
+        let stems = stems.map(|s| s.into_inner().ok().flatten());
+        let heads: [Mutex<Vec<f32>>; 4] = Default::default();
+        crate::pool::run(4, &|i| {
+            let (e, iris) = (i / 2, i % 2 == 1);
+            if let Some(f) = &stems[e] {
+                let tail = if iris { &eyes[e].2 } else { &eyes[e].1 };
+                let out = transform_landmarks(&tail.forward(f), mats[e]);
+                if let Ok(mut h) = heads[i].lock() {
+                    *h = out;
+                }
+            }
+        });
+        let [left_eye, left_iris, right_eye, right_iris] =
+            heads.map(|h| h.into_inner().unwrap_or_default());
+        let lips = lips.into_inner().unwrap_or_default();
         MeshOutputs {
             mesh,
             lips,

@@ -34,6 +34,8 @@ struct Shared {
     parked: AtomicUsize,
     /// Set when the pool is dropped: helpers exit.
     shutdown: AtomicBool,
+    /// A task of the current fork panicked.
+    panicked: AtomicBool,
     wake: Condvar,
     wake_lock: Mutex<()>,
 }
@@ -102,6 +104,7 @@ impl Pool {
             remaining: AtomicUsize::new(0),
             parked: AtomicUsize::new(0),
             shutdown: AtomicBool::new(false),
+            panicked: AtomicBool::new(false),
             wake: Condvar::new(),
             wake_lock: Mutex::new(()),
         });
@@ -155,10 +158,22 @@ impl Pool {
         INSIDE.with(|c| c.set(true));
         work(s, f, n, id);
         INSIDE.with(|c| c.set(false));
+        // Wait for tasks a helper is still running. After a short spin, yield: on a busy
+        // machine the helper may be waiting for this very core.
+        let mut spins = 0u32;
         while s.remaining.load(Ordering::Acquire) > 0 {
-            std::hint::spin_loop();
+            spins = spins.saturating_add(1);
+            if spins > 2000 {
+                std::thread::yield_now();
+            } else {
+                std::hint::spin_loop();
+            }
         }
+        let panicked = s.panicked.swap(false, Ordering::AcqRel);
         self.busy.store(false, Ordering::Release);
+        if panicked {
+            panic!("a task of a face-pool fork panicked");
+        }
     }
 }
 
@@ -205,6 +220,11 @@ fn helper(s: &Shared) {
                 break;
             }
             spins = spins.wrapping_add(1);
+            if spins.is_multiple_of(256) {
+                // Let other work on this core run between checks (sched_yield returns at once
+                // on an idle machine).
+                std::thread::yield_now();
+            }
             if spins.is_multiple_of(64) && idle.elapsed() > SPIN {
                 if s.shutdown.load(Ordering::Acquire) {
                     return;
@@ -258,6 +278,24 @@ mod tests {
                 "{n} tasks"
             );
         }
+    }
+
+    #[test]
+    fn a_panicking_task_is_reraised_and_the_pool_survives() {
+        let p = Pool::new(1);
+        let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            p.run(4, &|i| {
+                if i == 2 {
+                    panic!("task 2");
+                }
+            })
+        }));
+        assert!(r.is_err());
+        let hits = AtomicU32::new(0);
+        p.run(5, &|_| {
+            hits.fetch_add(1, Ordering::Relaxed);
+        });
+        assert_eq!(hits.load(Ordering::Relaxed), 5);
     }
 
     #[test]

@@ -5,6 +5,7 @@
 //! fresh memory nor zero-fills outputs that its kernel overwrites anyway.
 
 use std::cell::RefCell;
+use std::collections::HashMap;
 
 /// A `h x w x c` feature map, channels fastest (`data[(y * w + x) * c + ch]`).
 #[derive(Debug, PartialEq)]
@@ -15,12 +16,19 @@ pub struct Nhwc {
     pub data: Vec<f32>,
 }
 
-/// Buffers kept per thread, and the most bytes they may hold.
-const POOL_BUFFERS: usize = 48;
-const POOL_BYTES: usize = 48 << 20;
+/// The most bytes the buffers kept per thread may hold.
+const POOL_BYTES: usize = 64 << 20;
+
+/// Dropped buffers by length: a forward pass asks for the same sizes frame after frame, so an
+/// exact-length match is the common case and needs no fill.
+#[derive(Default)]
+struct Pool {
+    by_len: HashMap<usize, Vec<Vec<f32>>>,
+    bytes: usize,
+}
 
 thread_local! {
-    static POOL: RefCell<Vec<Vec<f32>>> = const { RefCell::new(Vec::new()) };
+    static POOL: RefCell<Pool> = RefCell::new(Pool::default());
 }
 
 /// A buffer of `n` values with unspecified (initialised) contents: for outputs a kernel
@@ -28,38 +36,27 @@ thread_local! {
 pub fn take(n: usize) -> Vec<f32> {
     let reused = POOL.with(|p| {
         let mut p = p.borrow_mut();
-        // The smallest buffer that fits.
-        let best = p
-            .iter()
-            .enumerate()
-            .filter(|(_, v)| v.capacity() >= n)
-            .min_by_key(|(_, v)| v.capacity())
-            .map(|(i, _)| i);
-        best.map(|i| p.swap_remove(i))
-    });
-    match reused {
-        Some(mut v) => {
-            if v.len() >= n {
-                v.truncate(n);
-            } else {
-                v.resize(n, 0.0);
-            }
-            v
+        let v = p.by_len.get_mut(&n).and_then(Vec::pop);
+        if let Some(v) = &v {
+            p.bytes -= v.capacity() * 4;
         }
-        None => vec![0.0; n],
-    }
+        v
+    });
+    reused.unwrap_or_else(|| vec![0.0; n])
 }
 
-/// Returns a buffer to this thread's pool (dropped instead when the pool is full).
+/// Returns a buffer to this thread's pool (dropped instead when the pool is full, or when it
+/// is too small to be worth keeping).
 fn give(v: Vec<f32>) {
-    if v.capacity() < 1024 {
+    if v.capacity() < 1024 || v.len() != v.capacity() {
         return;
     }
     POOL.with(|p| {
         let mut p = p.borrow_mut();
-        let bytes: usize = p.iter().map(|b| b.capacity() * 4).sum();
-        if p.len() < POOL_BUFFERS && bytes + v.capacity() * 4 <= POOL_BYTES {
-            p.push(v);
+        let bytes = v.capacity() * 4;
+        if p.bytes + bytes <= POOL_BYTES {
+            p.bytes += bytes;
+            p.by_len.entry(v.len()).or_default().push(v);
         }
     });
 }
@@ -130,10 +127,12 @@ mod tests {
         drop(a);
         let b = Nhwc::uninit(20, 20, 8);
         assert_eq!(b.data.len(), 3200);
-        assert_eq!(b.data.as_ptr(), ptr);
         drop(b);
-        let c = Nhwc::zeros(40, 41, 8);
-        assert_eq!(c.data.len(), 40 * 41 * 8);
-        assert!(c.data.iter().all(|&v| v == 0.0));
+        let c = Nhwc::uninit(40, 40, 8);
+        assert_eq!(c.data.as_ptr(), ptr, "the same size is reused");
+        drop(c);
+        let d = Nhwc::zeros(40, 41, 8);
+        assert_eq!(d.data.len(), 40 * 41 * 8);
+        assert!(d.data.iter().all(|&v| v == 0.0));
     }
 }

@@ -198,113 +198,115 @@ pub fn warp_u8(img: &RgbImage, roi: &RotatedRect, ow: usize, oh: usize, border: 
     // the row start at the block's first column, then one step per column.
     let bh0 = 16.min(oh).max(1);
     let bw0 = (1024 / bh0).min(ow).max(1);
-    let (mut sxs, mut sys) = (vec![0i32; bw0], vec![0i32; bw0]);
-    for y in 0..oh {
-        let yf = y as f64;
-        let row = &mut out[y * ow * 3..(y + 1) * ow * 3];
-        for bx in (0..ow).step_by(bw0) {
-            let n = bw0.min(ow - bx);
-            let bxf = bx as f64;
-            let start = [
-                m[0] * bxf + m[1] * yf + m[2],
-                m[3] * bxf + m[4] * yf + m[5],
-                m[6] * bxf + m[7] * yf + m[8],
-            ];
-            row_coords_d(&m, start, &mut sxs[..n], &mut sys[..n]);
-            let mut fast = 0;
-            #[cfg(target_arch = "x86_64")]
-            if crate::simd::level() == crate::simd::Level::Avx512 {
-                while fast + 16 <= n {
-                    let dst = &mut row[(bx + fast) * 3..(bx + fast + 16) * 3];
-                    // SAFETY: AVX-512F was detected; the function checks every pixel's taps
-                    // against the image before reading.
-                    let done = unsafe {
-                        sample16_avx512(
-                            src,
-                            iw as i32,
-                            ih as i32,
-                            &sxs[fast..fast + 16],
-                            &sys[fast..fast + 16],
-                            dst,
-                        )
-                    };
-                    if !done {
-                        break;
-                    }
-                    fast += 16;
-                }
-            }
-            for (i, (&sx, &sy)) in sxs[..n].iter().zip(&sys[..n]).enumerate().skip(fast) {
-                let x = bx + i;
-                let (px, py) = ((sx >> 5) as i64, (sy >> 5) as i64);
-                let (fx, fy) = (sx & (TAB as i32 - 1), sy & (TAB as i32 - 1));
-                let t = TAB as i32;
-                let wt = [
-                    (t - fy) * (t - fx) * unit,
-                    (t - fy) * fx * unit,
-                    fy * (t - fx) * unit,
-                    fy * fx * unit,
+    crate::kernels::for_rows(&mut out, oh, ow * 3, ow * oh * 40, |y0, band| {
+        let (mut sxs, mut sys) = (vec![0i32; bw0], vec![0i32; bw0]);
+        for (dy, row) in band.chunks_exact_mut(ow * 3).enumerate() {
+            let y = y0 + dy;
+            let yf = y as f64;
+            for bx in (0..ow).step_by(bw0) {
+                let n = bw0.min(ow - bx);
+                let bxf = bx as f64;
+                let start = [
+                    m[0] * bxf + m[1] * yf + m[2],
+                    m[3] * bxf + m[4] * yf + m[5],
+                    m[6] * bxf + m[7] * yf + m[8],
                 ];
-                let o = &mut row[x * 3..x * 3 + 3];
-                if px >= 0 && py >= 0 && px + 1 < iw && py + 1 < ih {
-                    let a = (py * iw + px) as usize * 3;
-                    debug_assert!(a + stride + 6 <= src.len());
-                    for (c, v) in o.iter_mut().enumerate() {
-                        // SAFETY: (px, py) and (px + 1, py + 1) are inside the image (checked
-                        // above), so bytes a..a+6 of rows py and py + 1 are in `src`.
-                        let (a0, a1, b0, b1) = unsafe {
-                            (
-                                *src.get_unchecked(a + c) as i32,
-                                *src.get_unchecked(a + c + 3) as i32,
-                                *src.get_unchecked(a + stride + c) as i32,
-                                *src.get_unchecked(a + stride + c + 3) as i32,
+                row_coords_d(&m, start, &mut sxs[..n], &mut sys[..n]);
+                let mut fast = 0;
+                #[cfg(target_arch = "x86_64")]
+                if crate::simd::level() == crate::simd::Level::Avx512 {
+                    while fast + 16 <= n {
+                        let dst = &mut row[(bx + fast) * 3..(bx + fast + 16) * 3];
+                        // SAFETY: AVX-512F was detected; the function checks every pixel's taps
+                        // against the image before reading.
+                        let done = unsafe {
+                            sample16_avx512(
+                                src,
+                                iw as i32,
+                                ih as i32,
+                                &sxs[fast..fast + 16],
+                                &sys[fast..fast + 16],
+                                dst,
                             )
                         };
-                        // Weights sum to 2^15, so the result is within 0..=255.
-                        *v = ((a0 * wt[0] + a1 * wt[1] + b0 * wt[2] + b1 * wt[3] + half)
-                            >> COEF_BITS) as u8;
+                        if !done {
+                            break;
+                        }
+                        fast += 16;
                     }
-                    continue;
                 }
-                // Near or past the edge: each tap reads the border rule.
-                let taps = match border {
-                    Border::Zero => {
-                        if px >= iw || px + 1 < 0 || py >= ih || py + 1 < 0 {
-                            continue;
+                for (i, (&sx, &sy)) in sxs[..n].iter().zip(&sys[..n]).enumerate().skip(fast) {
+                    let x = bx + i;
+                    let (px, py) = ((sx >> 5) as i64, (sy >> 5) as i64);
+                    let (fx, fy) = (sx & (TAB as i32 - 1), sy & (TAB as i32 - 1));
+                    let t = TAB as i32;
+                    let wt = [
+                        (t - fy) * (t - fx) * unit,
+                        (t - fy) * fx * unit,
+                        fy * (t - fx) * unit,
+                        fy * fx * unit,
+                    ];
+                    let o = &mut row[x * 3..x * 3 + 3];
+                    if px >= 0 && py >= 0 && px + 1 < iw && py + 1 < ih {
+                        let a = (py * iw + px) as usize * 3;
+                        debug_assert!(a + stride + 6 <= src.len());
+                        for (c, v) in o.iter_mut().enumerate() {
+                            // SAFETY: (px, py) and (px + 1, py + 1) are inside the image (checked
+                            // above), so bytes a..a+6 of rows py and py + 1 are in `src`.
+                            let (a0, a1, b0, b1) = unsafe {
+                                (
+                                    *src.get_unchecked(a + c) as i32,
+                                    *src.get_unchecked(a + c + 3) as i32,
+                                    *src.get_unchecked(a + stride + c) as i32,
+                                    *src.get_unchecked(a + stride + c + 3) as i32,
+                                )
+                            };
+                            // Weights sum to 2^15, so the result is within 0..=255.
+                            *v = ((a0 * wt[0] + a1 * wt[1] + b0 * wt[2] + b1 * wt[3] + half)
+                                >> COEF_BITS) as u8;
                         }
-                        let inside = |x: i64, y: i64| {
-                            (x >= 0 && y >= 0 && x < iw && y < ih).then_some((x, y))
-                        };
-                        [
-                            inside(px, py),
-                            inside(px + 1, py),
-                            inside(px, py + 1),
-                            inside(px + 1, py + 1),
-                        ]
+                        continue;
                     }
-                    Border::Replicate => {
-                        let (xa, xb) = (px.clamp(0, iw - 1), (px + 1).clamp(0, iw - 1));
-                        let (ya, yb) = (py.clamp(0, ih - 1), (py + 1).clamp(0, ih - 1));
-                        [
-                            Some((xa, ya)),
-                            Some((xb, ya)),
-                            Some((xa, yb)),
-                            Some((xb, yb)),
-                        ]
-                    }
-                };
-                for (c, v) in o.iter_mut().enumerate() {
-                    let mut s = 0i32;
-                    for (tap, w) in taps.iter().zip(wt) {
-                        if let Some((tx, ty)) = tap {
-                            s += src[(ty * iw + tx) as usize * 3 + c] as i32 * w;
+                    // Near or past the edge: each tap reads the border rule.
+                    let taps = match border {
+                        Border::Zero => {
+                            if px >= iw || px + 1 < 0 || py >= ih || py + 1 < 0 {
+                                continue;
+                            }
+                            let inside = |x: i64, y: i64| {
+                                (x >= 0 && y >= 0 && x < iw && y < ih).then_some((x, y))
+                            };
+                            [
+                                inside(px, py),
+                                inside(px + 1, py),
+                                inside(px, py + 1),
+                                inside(px + 1, py + 1),
+                            ]
                         }
+                        Border::Replicate => {
+                            let (xa, xb) = (px.clamp(0, iw - 1), (px + 1).clamp(0, iw - 1));
+                            let (ya, yb) = (py.clamp(0, ih - 1), (py + 1).clamp(0, ih - 1));
+                            [
+                                Some((xa, ya)),
+                                Some((xb, ya)),
+                                Some((xa, yb)),
+                                Some((xb, yb)),
+                            ]
+                        }
+                    };
+                    for (c, v) in o.iter_mut().enumerate() {
+                        let mut s = 0i32;
+                        for (tap, w) in taps.iter().zip(wt) {
+                            if let Some((tx, ty)) = tap {
+                                s += src[(ty * iw + tx) as usize * 3 + c] as i32 * w;
+                            }
+                        }
+                        *v = ((s + half) >> COEF_BITS).clamp(0, 255) as u8;
                     }
-                    *v = ((s + half) >> COEF_BITS).clamp(0, 255) as u8;
                 }
             }
         }
-    }
+    });
     out
 }
 
