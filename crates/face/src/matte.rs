@@ -113,7 +113,7 @@ pub fn resize_linear(src: &[f32], sw: usize, sh: usize, dw: usize, dh: usize) ->
     };
     let xs: Vec<_> = (0..dw).map(|x| taps(x, sw, dw)).collect();
     // Each source row resampled to the output width, once.
-    let mut rows = vec![0.0f32; sh * dw];
+    let mut rows = crate::tensor::take(sh * dw);
     for (r, out) in src.chunks_exact(sw).zip(rows.chunks_exact_mut(dw)) {
         for (o, &(a, b, t)) in out.iter_mut().zip(&xs) {
             *o = r[a] * (1.0 - t) + r[b] * t;

@@ -47,7 +47,7 @@ pub fn take(n: usize) -> Vec<f32> {
 
 /// Returns a buffer to this thread's pool (dropped instead when the pool is full, or when it
 /// is too small to be worth keeping).
-fn give(v: Vec<f32>) {
+pub fn give(v: Vec<f32>) {
     if v.capacity() < 1024 || v.len() != v.capacity() {
         return;
     }
