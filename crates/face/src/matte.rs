@@ -132,6 +132,7 @@ pub fn resize_linear(src: &[f32], sw: usize, sh: usize, dw: usize, dh: usize) ->
             );
         }
     });
+    crate::tensor::give(rows);
     out
 }
 

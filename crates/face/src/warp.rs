@@ -212,30 +212,32 @@ pub fn warp_u8(img: &RgbImage, roi: &RotatedRect, ow: usize, oh: usize, border: 
                     m[6] * bxf + m[7] * yf + m[8],
                 ];
                 row_coords_d(&m, start, &mut sxs[..n], &mut sys[..n]);
-                let mut fast = 0;
+                // Chunks of 16 pixels go through the gather kernel when their taps allow,
+                // the rest through the scalar loop below.
+                let mut simd_done = [false; 1024];
                 #[cfg(target_arch = "x86_64")]
                 if crate::simd::level() == crate::simd::Level::Avx512 {
-                    while fast + 16 <= n {
-                        let dst = &mut row[(bx + fast) * 3..(bx + fast + 16) * 3];
+                    for c in (0..n / 16).map(|c| c * 16) {
+                        let dst = &mut row[(bx + c) * 3..(bx + c + 16) * 3];
                         // SAFETY: AVX-512F was detected; the function checks every pixel's taps
                         // against the image before reading.
-                        let done = unsafe {
+                        simd_done[c] = unsafe {
                             sample16_avx512(
                                 src,
                                 iw as i32,
                                 ih as i32,
-                                &sxs[fast..fast + 16],
-                                &sys[fast..fast + 16],
+                                &sxs[c..c + 16],
+                                &sys[c..c + 16],
+                                border == Border::Zero,
                                 dst,
                             )
                         };
-                        if !done {
-                            break;
-                        }
-                        fast += 16;
                     }
                 }
-                for (i, (&sx, &sy)) in sxs[..n].iter().zip(&sys[..n]).enumerate().skip(fast) {
+                for (i, (&sx, &sy)) in sxs[..n].iter().zip(&sys[..n]).enumerate() {
+                    if simd_done[i / 16 * 16] {
+                        continue;
+                    }
                     let x = bx + i;
                     let (px, py) = ((sx >> 5) as i64, (sy >> 5) as i64);
                     let (fx, fy) = (sx & (TAB as i32 - 1), sy & (TAB as i32 - 1));
@@ -310,9 +312,10 @@ pub fn warp_u8(img: &RgbImage, roi: &RotatedRect, ow: usize, oh: usize, border: 
     out
 }
 
-/// Samples 16 consecutive output pixels whose four taps are all inside the image (returns
-/// false, writing nothing, when one is not): the same integer arithmetic as the scalar loop,
-/// 16 pixels per instruction, the taps fetched with gathers.
+/// Samples 16 consecutive output pixels whose four taps are all inside the image, or (with
+/// `zero_outside`, the zero border) all outside it (returns false, writing nothing, when a
+/// pixel straddles the edge): the same integer arithmetic as the scalar loop, 16 pixels per
+/// instruction, the taps fetched with gathers.
 ///
 /// # Safety
 /// AVX-512F must be available.
@@ -324,6 +327,7 @@ unsafe fn sample16_avx512(
     ih: i32,
     sx: &[i32],
     sy: &[i32],
+    zero_outside: bool,
     dst: &mut [u8],
 ) -> bool {
     use std::arch::x86_64::*;
@@ -342,7 +346,18 @@ unsafe fn sample16_avx512(
         & _mm512_cmpge_epi32_mask(py, zero)
         & _mm512_cmplt_epi32_mask(px, _mm512_set1_epi32(iw - 1))
         & _mm512_cmplt_epi32_mask(py, _mm512_set1_epi32(ih - 1));
-    if inside != 0xffff {
+    // Every tap outside: px >= iw, px + 1 < 0, py >= ih or py + 1 < 0.
+    let minus1 = _mm512_set1_epi32(-1);
+    let outside = _mm512_cmpge_epi32_mask(px, _mm512_set1_epi32(iw))
+        | _mm512_cmplt_epi32_mask(px, minus1)
+        | _mm512_cmpge_epi32_mask(py, _mm512_set1_epi32(ih))
+        | _mm512_cmplt_epi32_mask(py, minus1);
+    let covered = if zero_outside {
+        inside | outside
+    } else {
+        inside
+    };
+    if covered != 0xffff {
         return false;
     }
     let m31 = _mm512_set1_epi32(31);
@@ -366,14 +381,15 @@ unsafe fn sample16_avx512(
     let b2 = _mm512_add_epi32(a2, stride);
     let base = src.as_ptr();
     // Dwords at a (r0 g0 b0 r1) and a + 2 (b0 r1 g1 b1) of both rows: every byte read belongs
-    // to the two pixels of the tap, inside the image (px + 1 < iw, py + 1 < ih).
-    // SAFETY: as just said, all offsets and the 4 bytes after them are inside `src`.
+    // to the two pixels of the tap, inside the image (px + 1 < iw, py + 1 < ih). Lanes outside
+    // the image read nothing and stay zero, so they compute 0 (the zero border).
+    // SAFETY: as just said, every offset read and the 4 bytes after it are inside `src`.
     let (g0, g1, g2, g3) = unsafe {
         (
-            _mm512_i32gather_epi32::<1>(a, base.cast()),
-            _mm512_i32gather_epi32::<1>(a2, base.cast()),
-            _mm512_i32gather_epi32::<1>(b, base.cast()),
-            _mm512_i32gather_epi32::<1>(b2, base.cast()),
+            _mm512_mask_i32gather_epi32::<1>(zero, inside, a, base.cast()),
+            _mm512_mask_i32gather_epi32::<1>(zero, inside, a2, base.cast()),
+            _mm512_mask_i32gather_epi32::<1>(zero, inside, b, base.cast()),
+            _mm512_mask_i32gather_epi32::<1>(zero, inside, b2, base.cast()),
         )
     };
     let byte = _mm512_set1_epi32(0xff);
