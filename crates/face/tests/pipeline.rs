@@ -34,6 +34,9 @@ fn pictures() -> Vec<(String, Value)> {
         .collect()
 }
 
+/// Worst box/keypoint and score differences seen (for the printed summary).
+static WORST: std::sync::Mutex<(f32, f32)> = std::sync::Mutex::new((0.0, 0.0));
+
 fn check_detections(name: &str, got: &[Detection], want: &Value) {
     let want = want.as_array().unwrap();
     assert_eq!(
@@ -53,6 +56,10 @@ fn check_detections(name: &str, got: &[Detection], want: &Value) {
         let b = floats(&w["box"]);
         let mine = [d.xmin, d.ymin, d.width, d.height];
         let (k, e) = worst(&mine, &b);
+        if let Ok(mut w) = WORST.lock() {
+            w.0 = w.0.max(e);
+            w.1 = w.1.max((d.score - score).abs());
+        }
         assert!(
             e < BOX_TOL,
             "{name} face {i}: box value {k}: {} vs {}",
@@ -62,6 +69,9 @@ fn check_detections(name: &str, got: &[Detection], want: &Value) {
         for (j, kp) in w["keypoints"].as_array().unwrap().iter().enumerate() {
             let kp = floats(kp);
             let (k, e) = worst(&d.keypoints[j], &kp);
+            if let Ok(mut w) = WORST.lock() {
+                w.0 = w.0.max(e);
+            }
             assert!(
                 e < BOX_TOL,
                 "{name} face {i} keypoint {j}[{k}]: {:?} vs {kp:?}",
@@ -86,6 +96,12 @@ fn detections_match_mediapipe() {
             &format!("{name} (full range)"),
             &full.detect(&img).unwrap(),
             &p["full_range"],
+        );
+    }
+    if let Ok(w) = WORST.lock() {
+        eprintln!(
+            "worst box/keypoint difference {:.3e} (normalised), worst score difference {:.3e}",
+            w.0, w.1
         );
     }
 }
