@@ -527,6 +527,68 @@ fn dw_rows<L: Lanes>(d: &Dw, r0: usize, out: &mut [f32]) {
 
 dispatch!(fn dw_rows_d(d: &Dw, r0: usize, out: &mut [f32]) = dw_rows);
 
+/// One output row of one channel block of a depthwise convolution: what the border pixels
+/// and the epilogue need.
+struct DwRow<'a, L: Lanes> {
+    d: &'a Dw<'a>,
+    oy: usize,
+    cb: usize,
+    n: usize,
+    /// The row's kernel-row range and the input row of kernel row 0.
+    ky: (usize, usize, isize),
+    kw: usize,
+    wt: &'a [L; 25],
+    bias: L,
+}
+
+impl<L: Lanes> DwRow<'_, L> {
+    /// Pixel `ox`'s sum over the taps inside the input.
+    #[inline(always)]
+    fn general(&self, ox: usize) -> L {
+        let (x, g, c, cb, n) = (self.d.x, self.d.g, self.d.x.c, self.cb, self.n);
+        let (ky0, ky1, iy0) = self.ky;
+        let kh = self.d.dw.kh;
+        let (kx0, kx1, ix0) = Geom::taps(ox, g.stride, g.pad_left, self.kw, x.w);
+        let (xp, wp) = (x.data.as_ptr(), self.d.dw.w.as_ptr());
+        let mut acc = self.bias;
+        for ky in ky0..ky1 {
+            let row = (iy0 + ky as isize) as usize * x.w;
+            for kx in kx0..kx1 {
+                let ix = (ix0 + kx as isize) as usize;
+                let t = ky * self.kw + kx;
+                let wv = if kh * self.kw <= 25 {
+                    self.wt[t]
+                } else {
+                    // SAFETY: tap t, channels cb..cb+n.
+                    unsafe { L::load_n(wp.add(t * c + cb), n) }
+                };
+                // SAFETY: the tap ranges keep (row, ix) inside the input.
+                let v = unsafe { L::load_n(xp.add((row + ix) * c + cb), n) };
+                acc = v.fma(wv, acc);
+            }
+        }
+        acc
+    }
+
+    /// The activation, and the input added back when asked.
+    #[inline(always)]
+    fn finish(&self, ox: usize, acc: L) -> L {
+        let mut v = self.d.act.apply(acc, self.cb);
+        if self.d.add_input {
+            let x = self.d.x;
+            // SAFETY: stride 1 with the output size equal to the input's: pixel (oy, ox)
+            // exists in the input.
+            v = v.add(unsafe {
+                L::load_n(
+                    x.data.as_ptr().add((self.oy * x.w + ox) * x.c + self.cb),
+                    self.n,
+                )
+            });
+        }
+        v
+    }
+}
+
 /// `K` is the kernel size when it is known at compile time (3 or 5: the taps unroll), 0 for
 /// any other size.
 #[inline(always)]
@@ -548,49 +610,66 @@ fn dw_rows_k<L: Lanes, const K: usize>(d: &Dw, r0: usize, out: &mut [f32]) {
                 *v = unsafe { L::load_n(wp.add(t * c + cb), n) };
             }
         }
+        // Output columns whose taps are all inside the input's width.
+        let ox_lo = g.pad_left.div_ceil(g.stride).min(g.ow);
+        let ox_hi = if x.w + g.pad_left >= kw {
+            ((x.w + g.pad_left - kw) / g.stride + 1).clamp(ox_lo, g.ow)
+        } else {
+            ox_lo
+        };
+        // Tap offsets from a window's top-left value (for the interior fast path).
+        let mut offs = [0usize; 25];
+        if K > 0 {
+            for ky in 0..K {
+                for kx in 0..K {
+                    offs[ky * K + kx] = (ky * x.w + kx) * c;
+                }
+            }
+        }
         for dy in 0..rows {
             let oy = r0 + dy;
             let (ky0, ky1, iy0) = Geom::taps(oy, g.stride, g.pad_top, kh, x.h);
-            for ox in 0..g.ow {
-                let (kx0, kx1, ix0) = Geom::taps(ox, g.stride, g.pad_left, kw, x.w);
-                let mut acc = bias;
-                if K > 0 && ky0 == 0 && ky1 == K && kx0 == 0 && kx1 == K {
-                    for ky in 0..K {
-                        let row = (iy0 + ky as isize) as usize * x.w;
-                        for kx in 0..K {
-                            let ix = (ix0 + kx as isize) as usize;
-                            // SAFETY: (row, ix) inside the input (full tap range), channels
-                            // cb..cb+n.
-                            let v = unsafe { L::load_n(xp.add((row + ix) * c + cb), n) };
-                            acc = v.fma(wt[ky * K + kx], acc);
+            let out_row = dy * g.ow * c + cb;
+            let row = DwRow {
+                d,
+                oy,
+                cb,
+                n,
+                ky: (ky0, ky1, iy0),
+                kw,
+                wt: &wt,
+                bias,
+            };
+            if K > 0 && ky0 == 0 && ky1 == K {
+                for ox in (0..ox_lo).chain(ox_hi..g.ow) {
+                    let v = row.finish(ox, row.general(ox));
+                    // SAFETY: output row dy of this band, pixel ox, channels cb..cb+n.
+                    unsafe { v.store_n(out.as_mut_ptr().add(out_row + ox * c), n) };
+                }
+                // Interior: every tap at a fixed offset from the window's corner.
+                if ox_lo < ox_hi {
+                    let first = (iy0 as usize * x.w + ox_lo * g.stride - g.pad_left) * c + cb;
+                    for ox in ox_lo..ox_hi {
+                        // SAFETY: iy0 >= 0 (full row range) and, for interior columns, every
+                        // tap of the window is inside the input; channels cb..cb+n.
+                        let p = unsafe { xp.add(first + (ox - ox_lo) * g.stride * c) };
+                        let mut acc = bias;
+                        for t in 0..K * K {
+                            // SAFETY: as above.
+                            let v = unsafe { L::load_n(p.add(offs[t]), n) };
+                            acc = v.fma(wt[t], acc);
                         }
-                    }
-                } else {
-                    for ky in ky0..ky1 {
-                        let row = (iy0 + ky as isize) as usize * x.w;
-                        for kx in kx0..kx1 {
-                            let ix = (ix0 + kx as isize) as usize;
-                            let t = ky * kw + kx;
-                            let wv = if kh * kw <= 25 {
-                                wt[t]
-                            } else {
-                                // SAFETY: tap t, channels cb..cb+n.
-                                unsafe { L::load_n(wp.add(t * c + cb), n) }
-                            };
-                            // SAFETY: the tap ranges keep (row, ix) inside the input.
-                            let v = unsafe { L::load_n(xp.add((row + ix) * c + cb), n) };
-                            acc = v.fma(wv, acc);
-                        }
+                        let v = row.finish(ox, acc);
+                        // SAFETY: output row dy of this band, pixel ox, channels cb..cb+n.
+                        unsafe { v.store_n(out.as_mut_ptr().add(out_row + ox * c), n) };
                     }
                 }
-                let mut v = d.act.apply(acc, cb);
-                if d.add_input {
-                    // SAFETY: stride 1 with the output size equal to the input's: pixel
-                    // (oy, ox) exists in the input.
-                    v = v.add(unsafe { L::load_n(xp.add((oy * x.w + ox) * c + cb), n) });
+            } else {
+                for ox in 0..g.ow {
+                    let v = row.finish(ox, row.general(ox));
+                    // SAFETY: output row dy of this band, pixel ox, channels cb..cb+n.
+                    unsafe { v.store_n(out.as_mut_ptr().add(out_row + ox * c), n) };
                 }
-                // SAFETY: output row dy of this band, pixel ox, channels cb..cb+n.
-                unsafe { v.store_n(out.as_mut_ptr().add((dy * g.ow + ox) * c + cb), n) };
             }
         }
     }
@@ -1081,6 +1160,9 @@ mod tests {
             (9, 7, 42, 3, 2),
             (12, 12, 16, 5, 1),
             (6, 5, 20, 4, 1),
+            (2, 2, 16, 3, 1),
+            (1, 3, 8, 5, 2),
+            (3, 2, 40, 5, 1),
         ] {
             let x = Nhwc::from_vec(h, w, c, rnd(h * w * c, 11));
             let wt = rnd(k * k * c, 12);
@@ -1092,7 +1174,11 @@ mod tests {
                 w: wt.clone(),
                 bias: b.clone(),
             };
-            for g in [Geom::same(h, w, k, s), Geom::padded(h, w, k, s, 1)] {
+            let mut geoms = vec![Geom::same(h, w, k, s)];
+            if h + 2 >= k && w + 2 >= k {
+                geoms.push(Geom::padded(h, w, k, s, 1));
+            }
+            for g in geoms {
                 let got = depthwise(&x, &dw, g, &Act::HardSwish);
                 let mut want = naive_conv(&x, &wt, &b, c, g, true);
                 activate(&mut want, &Act::HardSwish);
