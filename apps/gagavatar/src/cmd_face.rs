@@ -20,8 +20,8 @@ const MIN_SIDE: u32 = 16;
 #[derive(Debug, Args)]
 #[command(
     after_help = "Prints one line per face (or \"no face found\"). Coordinates are pixels of the \
-photo as stored, after its EXIF orientation: x right, y down, z in the unit of x (negative toward \
-the camera). The overlay is written at the processed size (photos over 4096 px are downscaled), \
+photo as displayed (its EXIF orientation applied): x right, y down, z in the unit of x (negative \
+toward the camera). The overlay is written at the processed size (photos over 4096 px are downscaled), \
 the matte at the photo's size.\n\nExamples:\n  gagavatar face me.jpg --json me.json -o me_overlay.png --matte me_matte.png\n  \
 gagavatar face group.png --max-faces 8 --full-range --json group.json"
 )]
@@ -29,7 +29,7 @@ pub struct FaceArgs {
     /// The photo (PNG, JPEG, WebP or BMP; the format is read from the content).
     pub image: PathBuf,
     /// Write the faces as JSON: {"width", "height", "faces": [{"score", "box": [x0,y0,x1,y1],
-    /// "keypoints": [[x,y] x6], "landmarks": [[x,y,z] x478]}]}.
+    /// "keypoints": [[x,y] x6], "presence", "landmarks": [[x,y,z] x478]}]}.
     #[arg(long)]
     pub json: Option<PathBuf>,
     /// Write a PNG with the boxes, keypoints and landmarks drawn on the photo.
