@@ -199,9 +199,9 @@ struct Mm<'a> {
 fn mm_rows<L: Lanes>(m: &Mm, p0: usize, out: &mut [f32]) {
     let rows = out.len() / m.pk.cout;
     match m.pk.nb {
-        1 => mm_nb::<L, 1, 12>(m, p0, rows, out),
-        2 => mm_nb::<L, 2, 12>(m, p0, rows, out),
-        3 => mm_nb::<L, 3, 8>(m, p0, rows, out),
+        1 => mm_nb::<L, 1, 16>(m, p0, rows, out),
+        2 => mm_nb::<L, 2, 14>(m, p0, rows, out),
+        3 => mm_nb::<L, 3, 9>(m, p0, rows, out),
         _ => mm_nb::<L, 4, 6>(m, p0, rows, out),
     }
 }
@@ -220,26 +220,19 @@ fn mm_nb<L: Lanes, const NB: usize, const MR: usize>(
         mm_tile::<L, NB, MR>(m, p0 + r, r, out);
         r += MR;
     }
-    // The last pixels in one tile of their own size, so the weights are read once more, not
-    // once per pixel (the attention branches have 2x2 and 4x4 maps).
+    // The last pixels in tiles of their own size, so the weights are read a few more times,
+    // not once per pixel (the attention branches have 2x2 and 4x4 maps).
+    while rows - r >= 6 {
+        mm_tile::<L, NB, 6>(m, p0 + r, r, out);
+        r += 6;
+    }
     match rows - r {
-        0 => {}
         1 => mm_tile::<L, NB, 1>(m, p0 + r, r, out),
         2 => mm_tile::<L, NB, 2>(m, p0 + r, r, out),
         3 => mm_tile::<L, NB, 3>(m, p0 + r, r, out),
         4 => mm_tile::<L, NB, 4>(m, p0 + r, r, out),
         5 => mm_tile::<L, NB, 5>(m, p0 + r, r, out),
-        rest => {
-            // Only with MR > 6 (NB <= 2): split into a 6-pixel tile and the rest.
-            let six = rest.min(6);
-            if six == 6 {
-                mm_tile::<L, NB, 6>(m, p0 + r, r, out);
-            }
-            let r = r + six;
-            for k in 0..rows - r {
-                mm_tile::<L, NB, 1>(m, p0 + r + k, r + k, out);
-            }
-        }
+        _ => {}
     }
 }
 
