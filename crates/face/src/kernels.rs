@@ -639,13 +639,35 @@ fn dw_rows_k<L: Lanes, const K: usize>(d: &Dw, r0: usize, out: &mut [f32]) {
                     // SAFETY: output row dy of this band, pixel ox, channels cb..cb+n.
                     unsafe { v.store_n(out.as_mut_ptr().add(out_row + ox * c), n) };
                 }
-                // Interior: every tap at a fixed offset from the window's corner.
+                // Interior: every tap at a fixed offset from the window's corner, four
+                // pixels at a time (four independent accumulation chains; one pixel's nine
+                // dependent multiply-adds would wait on each other).
                 if ox_lo < ox_hi {
                     let first = (iy0 as usize * x.w + ox_lo * g.stride - g.pad_left) * c + cb;
-                    for ox in ox_lo..ox_hi {
+                    let step = g.stride * c;
+                    let mut ox = ox_lo;
+                    while ox + 4 <= ox_hi {
                         // SAFETY: iy0 >= 0 (full row range) and, for interior columns, every
                         // tap of the window is inside the input; channels cb..cb+n.
-                        let p = unsafe { xp.add(first + (ox - ox_lo) * g.stride * c) };
+                        let p = unsafe { xp.add(first + (ox - ox_lo) * step) };
+                        let mut acc = [bias; 4];
+                        for t in 0..K * K {
+                            for (u, a) in acc.iter_mut().enumerate() {
+                                // SAFETY: as above, for pixel ox + u.
+                                let v = unsafe { L::load_n(p.add(offs[t] + u * step), n) };
+                                *a = v.fma(wt[t], *a);
+                            }
+                        }
+                        for (u, a) in acc.into_iter().enumerate() {
+                            let v = row.finish(ox + u, a);
+                            // SAFETY: output row dy of this band, pixel ox + u, channels cb..
+                            unsafe { v.store_n(out.as_mut_ptr().add(out_row + (ox + u) * c), n) };
+                        }
+                        ox += 4;
+                    }
+                    for ox in ox..ox_hi {
+                        // SAFETY: as above.
+                        let p = unsafe { xp.add(first + (ox - ox_lo) * step) };
                         let mut acc = bias;
                         for t in 0..K * K {
                             // SAFETY: as above.
