@@ -260,7 +260,7 @@ NOTICE = """gagavatar face models
 
 The files *.safetensors in this folder are Google MediaPipe face models (face detection
 short range and full range, the face landmark model with attention, selfie segmentation),
-Copyright 2020-2022 The MediaPipe Authors, licensed under the Apache License, Version 2.0
+Copyright The MediaPipe Authors, licensed under the Apache License, Version 2.0
 (see LICENSE in this folder, copied verbatim from the mediapipe {version} wheel).
 
 Source: PyPI package mediapipe=={version}, file {wheel}
