@@ -156,7 +156,7 @@ impl Pool {
             s.wake.notify_all();
         }
         INSIDE.with(|c| c.set(true));
-        work(s, f, n, id);
+        work(s, f as *const Task<'_>, n, id);
         INSIDE.with(|c| c.set(false));
         // Wait for tasks a helper is still running. After a short spin, yield: on a busy
         // machine the helper may be waiting for this very core.
@@ -185,8 +185,9 @@ impl Drop for Pool {
     }
 }
 
-/// Claims and runs tasks of fork `id` until none are left.
-fn work(s: &Shared, f: &Task<'_>, n: usize, id: u32) {
+/// Claims and runs tasks of fork `id` until none are left. `f` is only dereferenced after a
+/// task was claimed: the fork is then known to be waiting for it, so `f` is alive.
+fn work(s: &Shared, f: *const Task<'_>, n: usize, id: u32) {
     let mut cur = s.state.load(Ordering::Acquire);
     loop {
         let (fork, i) = ((cur >> 32) as u32, (cur & 0xffff_ffff) as usize);
@@ -198,7 +199,14 @@ fn work(s: &Shared, f: &Task<'_>, n: usize, id: u32) {
             .compare_exchange_weak(cur, cur + 1, Ordering::AcqRel, Ordering::Acquire)
         {
             Ok(_) => {
-                f(i);
+                // SAFETY: task i of fork `id` is claimed and not finished, so the forking
+                // thread is still inside `Pool::run`, where `f` lives.
+                let f = unsafe { &*f };
+                // A panicking task must still count as done (or the fork would wait forever);
+                // the forking thread re-raises it.
+                if std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(i))).is_err() {
+                    s.panicked.store(true, Ordering::Release);
+                }
                 s.remaining.fetch_sub(1, Ordering::Release);
                 cur = s.state.load(Ordering::Acquire);
             }
@@ -252,9 +260,7 @@ fn helper(s: &Shared) {
         let fork = s.fork.lock().ok().and_then(|g| *g);
         if let Some(Fork { f, n, id }) = fork {
             if id == seen {
-                // SAFETY: fork `id` is still waiting for its tasks (see `Pool::run`), and
-                // `work` only runs tasks it claims for fork `id`.
-                work(s, unsafe { &*f }, n, id);
+                work(s, f, n, id);
             }
         }
     }
@@ -283,14 +289,22 @@ mod tests {
     #[test]
     fn a_panicking_task_is_reraised_and_the_pool_survives() {
         let p = Pool::new(1);
-        let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            p.run(4, &|i| {
-                if i == 2 {
-                    panic!("task 2");
-                }
-            })
-        }));
-        assert!(r.is_err());
+        // Whichever thread runs the panicking task (the caller or the helper), the fork
+        // returns by re-raising it, and the pool keeps working.
+        for round in 0..20 {
+            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                p.run(4, &|i| {
+                    if i == round % 4 {
+                        panic!("task {i}");
+                    }
+                })
+            }));
+            assert!(r.is_err(), "round {round}");
+            assert!(
+                !p.busy.load(Ordering::Acquire),
+                "round {round}: pool left busy"
+            );
+        }
         let hits = AtomicU32::new(0);
         p.run(5, &|_| {
             hits.fetch_add(1, Ordering::Relaxed);
