@@ -4,9 +4,9 @@
 //! the arithmetic), 3x3/5x5 depthwise convolutions, a few small full convolutions, pooling and
 //! resampling. Each kernel fuses what TFLite runs as separate ops around it (bias, the residual
 //! add with its zero channel padding, the activation), so a BlazeBlock is two passes over memory
-//! instead of five. Large ops split their output rows over the rayon pool; small ones (most ops
-//! of the attention branches work on 16x16 maps or smaller) run on the calling thread, since a
-//! fork costs more than their arithmetic.
+//! instead of five. Large ops split their output rows over the face thread pool
+//! ([`crate::pool`]); small ones (most ops of the attention branches work on 16x16 maps or
+//! smaller) run on the calling thread, since a fork costs more than their arithmetic.
 
 use crate::simd::{dispatch, Lanes, W};
 use crate::tensor::Nhwc;
@@ -926,18 +926,6 @@ fn channel_sums_impl<L: Lanes>(x: &[f32], c: usize, w: usize, total: &mut [f64])
 }
 
 dispatch!(fn channel_sums_d(x: &[f32], c: usize, w: usize, total: &mut [f64]) = channel_sums_impl);
-
-/// `x * scale` with one scale per channel (a squeeze-and-excitation gate).
-pub fn scale_channels(x: &Nhwc, scale: &[f32]) -> Nhwc {
-    assert_eq!(scale.len(), x.c, "channel scales");
-    let mut out = x.clone();
-    for p in out.data.chunks_exact_mut(x.c) {
-        for (v, &s) in p.iter_mut().zip(scale) {
-            *v *= s;
-        }
-    }
-    out
-}
 
 /// RESIZE_BILINEAR with `half_pixel_centers = true`, `align_corners = false` (TFLite's
 /// reference arithmetic: the source coordinate `(o + 0.5) * in / out - 0.5`, neighbours
