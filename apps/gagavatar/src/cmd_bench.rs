@@ -6,6 +6,7 @@ use clap::{Args, Subcommand, ValueEnum};
 use gagavatar_splat::testscene::{avatar_scene, Regime};
 use gagavatar_splat::{splat, Gaussians};
 use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
 use std::time::Instant;
 
 #[derive(Debug, Subcommand)]
@@ -31,6 +32,37 @@ pub enum BenchCmd {
         after_help = "Frames are images (a folder of them, or files), used in order as a video. Each frame is\ncopied right before it is timed, as a decoder would have just written it.\n\nExample:\n  ffmpeg -i clip.mp4 frames/%04d.png\n  gagavatar bench face frames --threads 2 --runs 3"
     )]
     Face(FaceBench),
+    /// The paper's evaluation protocol on self-reenactment pairs: the metrics' time per pair
+    /// (realignment, landmarks, CSIM, AED / APD fits, AKD, PSNR, SSIM, LPIPS with --lpips),
+    /// apart from the model's rendering.
+    #[command(
+        after_help = "Without --ckpt the ground truth is scored as the result (no rendering), which \
+exercises every metric on real faces. Prints the load average before and after.\n\nExample:\n  \
+gagavatar bench eval --data tracked_test --pairs 100 --threads 2"
+    )]
+    Eval(EvalBench),
+}
+
+#[derive(Debug, Args)]
+pub struct EvalBench {
+    /// Dataset with faces (e.g. a tracker output), 512 crops.
+    #[arg(long)]
+    data: PathBuf,
+    /// Model weights; without them the ground truth is the result.
+    #[arg(long)]
+    ckpt: Option<PathBuf>,
+    #[arg(long)]
+    flame: Option<PathBuf>,
+    #[arg(long, default_value = "test")]
+    split: String,
+    #[arg(long, default_value_t = 100)]
+    pairs: usize,
+    #[arg(long)]
+    lpips: Option<PathBuf>,
+    #[arg(long, default_value_t = 2)]
+    threads: usize,
+    #[arg(long, default_value_t = 8)]
+    batch: usize,
 }
 
 #[derive(Debug, Args)]
@@ -113,6 +145,7 @@ pub fn run(cmd: BenchCmd) -> Result<()> {
         BenchCmd::Model(args) => bench_model(args),
         BenchCmd::Video(args) => bench_video(args),
         BenchCmd::Face(args) => bench_face(args),
+        BenchCmd::Eval(args) => bench_eval(args),
     }
 }
 
@@ -634,6 +667,55 @@ fn bench_face(args: FaceBench) -> Result<()> {
     println!(
         "  tracking: face in {found} of {} frames, detector ran on {detected}",
         runs * frames.len()
+    );
+    Ok(())
+}
+
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_else(|_| "unknown".into())
+}
+
+fn bench_eval(a: EvalBench) -> Result<()> {
+    let out = std::env::temp_dir().join(format!("gagavatar-bench-eval-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let args = crate::cmd_eval::EvalArgs {
+        ground_truth_as_result: a.ckpt.is_none(),
+        ckpt: a.ckpt,
+        data: a.data,
+        split: a.split,
+        preset: None,
+        flame: a.flame,
+        mode: Some("self".into()),
+        out: Some(out.clone()),
+        pairs: Some(a.pairs),
+        seed: 0,
+        batch: a.batch,
+        limit: None,
+        json: None,
+        grid: None,
+        lpips: a.lpips,
+        threads: Some(a.threads),
+    };
+    let load_before = load_average();
+    let result = crate::cmd_eval::run_protocol(&args, &out);
+    let load_after = load_average();
+    let _ = std::fs::remove_dir_all(&out);
+    let o = result?;
+    println!(
+        "eval protocol, {} self pairs, {} threads{}: metrics {:.1} ms a pair ({:.2} s wall in \
+         all), rendering {:.2} s; load average before {load_before}, after {load_after}",
+        o.scored,
+        a.threads,
+        if args.lpips.is_some() {
+            ", with LPIPS"
+        } else {
+            ", no LPIPS"
+        },
+        o.metrics_ms_per_pair(),
+        o.metrics.as_secs_f64(),
+        o.render.as_secs_f64(),
     );
     Ok(())
 }

@@ -86,48 +86,6 @@ pub struct TrainArgs {
 
 #[derive(Debug, Args)]
 #[command(
-    after_help = "Pairs: in each video of the split, the first frame (natural order) is \
-the source of every other frame (the release's protocol). Prints PSNR and SSIM (luma, 11x11 \
-Gaussian window: the release's validation SSIM) of the fine image, of the coarse splatted RGB \
-and of the source image copied as the prediction; with --lpips also LPIPS (AlexNet, lower is \
-better).\n\nExample:\n  gagavatar eval --ckpt \
-runs/tiny/weights.safetensors --data data/synth64 --split test"
-)]
-pub struct EvalArgs {
-    /// Model weights (safetensors with their configuration, or GAGAvatar.pt).
-    #[arg(long)]
-    pub ckpt: PathBuf,
-    #[arg(long)]
-    pub data: PathBuf,
-    /// Split: train, val or test.
-    #[arg(long, default_value = "test")]
-    pub split: String,
-    /// Architecture when the file does not say (a .pt is the release).
-    #[arg(long)]
-    pub preset: Option<String>,
-    /// FLAME asset; default the built-in synthetic one.
-    #[arg(long)]
-    pub flame: Option<PathBuf>,
-    /// Evaluate at most this many pairs.
-    #[arg(long)]
-    pub limit: Option<usize>,
-    /// Also write the means and per-pair scores as JSON.
-    #[arg(long)]
-    pub json: Option<PathBuf>,
-    /// Also write a PNG of the first pairs (target | coarse | fine).
-    #[arg(long)]
-    pub grid: Option<PathBuf>,
-    /// LPIPS (AlexNet) weights: the `lpips` package's `LPIPS(net='alex')` state dict as
-    /// safetensors; adds an LPIPS column.
-    #[arg(long)]
-    pub lpips: Option<PathBuf>,
-    /// Worker threads (default: all cores).
-    #[arg(long)]
-    pub threads: Option<usize>,
-}
-
-#[derive(Debug, Args)]
-#[command(
     after_help = "Times full training steps (forward of both phases, every loss term, \
 backward, NaN check, Adam) on a synthetic batch with seeded weights; data loading is not \
 included (it runs on other threads).\n\nExample:\n  gagavatar train-bench --preset tiny --batch 1 \
@@ -156,7 +114,7 @@ pub struct TrainBenchArgs {
 }
 
 /// Thread settings; must run before candle or rayon start their pools.
-fn set_threads(threads: Option<usize>) {
+pub fn set_threads(threads: Option<usize>) {
     if let Some(n) = threads {
         std::env::set_var("RAYON_NUM_THREADS", n.to_string());
         std::env::set_var("CANDLE_NUM_THREADS", n.to_string());
@@ -335,16 +293,21 @@ pub fn run_train(a: TrainArgs) -> Result<()> {
     Ok(())
 }
 
-pub fn run_eval(a: EvalArgs) -> Result<()> {
+/// The release's validation table (`eval` without `--mode`).
+pub fn run_eval(a: crate::cmd_eval::EvalArgs) -> Result<()> {
     set_threads(a.threads);
+    let ckpt = a
+        .ckpt
+        .as_deref()
+        .ok_or_else(|| anyhow::anyhow!("--ckpt is required"))?;
     let dev = Device::Cpu;
     let explicit = a
         .preset
         .as_deref()
         .map(crate::cmd_model::preset)
         .transpose()?;
-    let model = gagavatar_net::checkpoint::load_model(&a.ckpt, explicit.as_ref(), &dev)
-        .with_context(|| format!("loading {}", a.ckpt.display()))?;
+    let model = gagavatar_net::checkpoint::load_model(ckpt, explicit.as_ref(), &dev)
+        .with_context(|| format!("loading {}", ckpt.display()))?;
     let flame = load_flame(a.flame.as_deref())?;
     if flame.n_vertices != model.cfg.n_vertices {
         bail!(
@@ -366,7 +329,7 @@ pub fn run_eval(a: EvalArgs) -> Result<()> {
         "test" => &splits.test,
         other => bail!("--split must be train, val or test, not `{other}`"),
     };
-    let pairs = eval_pairs(names, a.limit);
+    let pairs = eval_pairs(names, a.limit.or(a.pairs));
     if pairs.is_empty() {
         bail!(
             "the `{}` split of {} has no pair (no video with two or more frames)",

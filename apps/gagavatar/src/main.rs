@@ -4,6 +4,7 @@
 mod animate;
 mod cmd_bench;
 mod cmd_demo;
+mod cmd_eval;
 mod cmd_face;
 mod cmd_flame;
 mod cmd_model;
@@ -62,8 +63,9 @@ enum Command {
     SynthData(cmd_synth::SynthDataArgs),
     /// Train a model (a preset or a TOML config) on a dataset, or resume a run.
     Train(cmd_train::TrainArgs),
-    /// PSNR / SSIM of a model on a dataset split (fine, coarse, and the copy-the-source floor).
-    Eval(cmd_train::EvalArgs),
+    /// The paper's evaluation (--mode self|cross|both: PSNR, SSIM, LPIPS, CSIM, AED, APD, AKD),
+    /// or without --mode the training validation table (fine, coarse, copy-the-source).
+    Eval(cmd_eval::EvalArgs),
     /// Time training steps (forward, loss, backward, Adam) on a synthetic batch.
     TrainBench(cmd_train::TrainBenchArgs),
 }
@@ -129,7 +131,7 @@ fn main() {
         Command::Bench(cmd) => cmd_bench::run(cmd),
         Command::SynthData(args) => cmd_synth::run(args),
         Command::Train(args) => cmd_train::run_train(args),
-        Command::Eval(args) => cmd_train::run_eval(args),
+        Command::Eval(args) => cmd_eval::run(args),
         Command::TrainBench(args) => cmd_train::run_bench(args),
     };
     if let Err(err) = result {

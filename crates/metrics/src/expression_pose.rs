@@ -9,8 +9,8 @@
 //!   asset does not have count as zero (the release records are zero-padded the same way).
 //! - APD = the geodesic angle, in degrees, between the two heads' rotations relative to the
 //!   camera (the rotation part of the fitted `transform_matrix`; FLAME's global pose is zero
-//!   in tracked records, the head's rotation lives in the camera). The angle of `Ra^T Rb`
-//!   depends only on `trace(Ra^T Rb)`, so row- and column-vector conventions agree.
+//!   in tracked records, the head's rotation lives in the camera). The angle of `Ra^T Rb` is
+//!   that of `Rb Ra^T` too, so row- and column-vector conventions agree.
 
 use gagavatar_flame::TrackedFrame;
 use gagavatar_track::observation::{FaceLandmarks, Observation};
@@ -82,16 +82,22 @@ pub fn aed(a: &ExpressionPose, b: &ExpressionPose) -> f64 {
     (e + j) / (AED_EXPRESSION + AED_JAW) as f64
 }
 
-/// Geodesic angle between the head rotations, degrees.
+/// Geodesic angle between the head rotations, degrees: the angle of `M = Ra^T Rb` as
+/// `atan2(|axis|, (trace - 1) / 2)`, accurate near 0 and near 180 degrees (an `acos` of the
+/// trace alone loses half the digits near 0).
 pub fn apd(a: &ExpressionPose, b: &ExpressionPose) -> f64 {
-    let mut tr = 0.0;
+    let (ra, rb) = (&a.rotation, &b.rotation);
+    let mut m = [[0.0; 3]; 3];
     for i in 0..3 {
         for j in 0..3 {
-            tr += a.rotation[i][j] * b.rotation[i][j];
+            m[i][j] = (0..3).map(|k| ra[k][i] * rb[k][j]).sum();
         }
     }
-    // Clamped: rounding can push the cosine just past +-1.
-    ((tr - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees()
+    let cos = (m[0][0] + m[1][1] + m[2][2] - 1.0) / 2.0;
+    let sin = 0.5
+        * ((m[2][1] - m[1][2]).powi(2) + (m[0][2] - m[2][0]).powi(2) + (m[1][0] - m[0][1]).powi(2))
+            .sqrt();
+    sin.atan2(cos).to_degrees()
 }
 
 /// Estimates expression and pose from landmarks with the tracker's photo fit.
@@ -143,7 +149,12 @@ mod tests {
     fn known_differences() {
         let a = pose(0.0, 0.0, 0.0);
         assert_eq!(aed(&a, &a), 0.0);
-        assert!(apd(&a, &a).abs() < 1e-6);
+        assert_eq!(apd(&a, &a), 0.0);
+        assert!(
+            (apd(&pose(0.0, 0.0, 1e-6), &a) - 1e-6).abs() < 1e-18,
+            "small angles keep their digits"
+        );
+        assert!((apd(&pose(0.0, 0.0, 180.0), &a) - 180.0).abs() < 1e-9);
         let b = pose(2.0, -0.65, 30.0);
         let want = (2.0 + 0.65) / 53.0;
         assert!(

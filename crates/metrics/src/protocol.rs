@@ -4,7 +4,8 @@
 //! - cross reenactment: the source is the first frame of video `i`, the driver a frame of
 //!   another video `j`; there is no ground truth. Pair `k` draws `i`, `j != i` and the driver
 //!   frame uniformly from a SplitMix64 stream seeded by `(seed, k)`, so the list is a pure
-//!   function of the videos, the count and the seed (and is written beside the scores).
+//!   function of the videos, the count and the seed (and is written beside the scores). A
+//!   pair drawn twice is skipped, so the pairs are distinct.
 //!
 //! `limit` for self reenactment keeps a seeded uniform subset, in list order.
 
@@ -104,7 +105,8 @@ pub fn self_pairs(videos: &[Vec<String>], limit: Option<usize>, seed: u64) -> Ve
     }
 }
 
-/// `n` cross-reenactment pairs; needs two or more non-empty videos.
+/// `n` distinct cross-reenactment pairs (fewer when the split has fewer); needs two or more
+/// non-empty videos.
 pub fn cross_pairs(videos: &[Vec<String>], n: usize, seed: u64) -> Result<Vec<EvalPair>> {
     let v: Vec<&Vec<String>> = videos.iter().filter(|v| !v.is_empty()).collect();
     if v.len() < 2 {
@@ -116,19 +118,29 @@ pub fn cross_pairs(videos: &[Vec<String>], n: usize, seed: u64) -> Result<Vec<Ev
             ),
         ));
     }
-    Ok((0..n as u64)
-        .map(|k| {
-            let mut rng = Stream::new(seed, SALT_CROSS, k);
-            let i = rng.below(v.len());
-            let j = (i + 1 + rng.below(v.len() - 1)) % v.len();
-            let d = rng.below(v[j].len());
-            EvalPair {
-                mode: Mode::Cross,
-                source: v[i][0].clone(),
-                driver: v[j][d].clone(),
-            }
-        })
-        .collect())
+    let frames: usize = v.iter().map(|x| x.len()).sum();
+    let possible: usize = v.iter().map(|x| frames - x.len()).sum();
+    let n = n.min(possible);
+    let mut seen = std::collections::HashSet::new();
+    let mut out = Vec::with_capacity(n);
+    // Draw k = 0, 1, ... until n distinct pairs; a repeat is skipped (the next k draws anew).
+    let mut k = 0u64;
+    while out.len() < n {
+        let mut rng = Stream::new(seed, SALT_CROSS, k);
+        k += 1;
+        let i = rng.below(v.len());
+        let j = (i + 1 + rng.below(v.len() - 1)) % v.len();
+        let d = rng.below(v[j].len());
+        let p = EvalPair {
+            mode: Mode::Cross,
+            source: v[i][0].clone(),
+            driver: v[j][d].clone(),
+        };
+        if seen.insert(p.clone()) {
+            out.push(p);
+        }
+    }
+    Ok(out)
 }
 
 #[cfg(test)]
@@ -175,6 +187,10 @@ mod tests {
             );
             assert!(p.iter().any(|q| video(&q.driver) == v), "{v} never drives");
         }
+        let distinct: std::collections::HashSet<_> = p.iter().collect();
+        assert_eq!(distinct.len(), p.len(), "pairs repeat");
+        // 5 sources x the frames of the other videos: 4 * 16 + 20 = 84 distinct pairs at most.
+        assert_eq!(cross_pairs(&videos(), 1000, 1).unwrap().len(), 84);
         assert!(cross_pairs(&videos()[..1], 3, 0).is_err());
         assert!(cross_pairs(&[], 3, 0).is_err());
     }
