@@ -27,10 +27,12 @@
 
 pub mod akd;
 pub mod align;
+pub mod arcface;
 pub mod error;
 pub mod expression_pose;
 pub mod geometry;
 pub mod identity;
+pub mod onnx;
 pub mod protocol;
 pub mod realign;
 pub mod report;

@@ -97,7 +97,8 @@ struct Reader<'a> {
 /// One field: its number and value.
 enum Value<'a> {
     Varint(u64),
-    Fixed64(u64),
+    /// A double or fixed64 field (none that this reader keeps).
+    Fixed64,
     Bytes(&'a [u8]),
     Fixed32(u32),
 }
@@ -150,9 +151,10 @@ impl<'a> Reader<'a> {
         let (num, wire) = (key >> 3, key & 7);
         let v = match wire {
             0 => Value::Varint(self.varint()?),
-            1 => Value::Fixed64(u64::from_le_bytes(
-                self.take(8)?.try_into().map_err(|_| bad("fixed64"))?,
-            )),
+            1 => {
+                self.take(8)?;
+                Value::Fixed64
+            }
             2 => {
                 let n = usize::try_from(self.varint()?).map_err(|_| bad("length overflow"))?;
                 Value::Bytes(self.take(n)?)
@@ -369,7 +371,10 @@ fn value_info_name(buf: &[u8]) -> Result<String> {
 /// Parses a model file's bytes.
 pub fn parse_model(bytes: &[u8]) -> Result<OnnxGraph> {
     if bytes.len() > MAX_MODEL_BYTES {
-        return Err(bad(format!("{} bytes is over the 1 GiB limit", bytes.len())));
+        return Err(bad(format!(
+            "{} bytes is over the 1 GiB limit",
+            bytes.len()
+        )));
     }
     let mut r = Reader::new(bytes);
     let mut graph = None;
@@ -452,7 +457,10 @@ mod tests {
         varint(2 << 3, &mut t);
         varint(1, &mut t);
         bytes_field(8, b"w", &mut t);
-        let raw: Vec<u8> = [1.5f32, -2.0].iter().flat_map(|f| f.to_le_bytes()).collect();
+        let raw: Vec<u8> = [1.5f32, -2.0]
+            .iter()
+            .flat_map(|f| f.to_le_bytes())
+            .collect();
         bytes_field(9, &raw, &mut t);
         let mut n = Vec::new();
         bytes_field(1, b"x", &mut n);
