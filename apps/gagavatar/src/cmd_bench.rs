@@ -696,6 +696,7 @@ fn bench_eval(a: EvalBench) -> Result<()> {
         json: None,
         grid: None,
         lpips: a.lpips,
+        arcface: None,
         threads: Some(a.threads),
     };
     let load_before = load_average();

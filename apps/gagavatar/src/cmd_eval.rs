@@ -20,7 +20,8 @@ use gagavatar_data::{group_by_video, Dataset};
 use gagavatar_flame::{synthesize, FlameAsset, FlameModel, FlameParams, LoadOptions};
 use gagavatar_metrics::report::{self, PairRow};
 use gagavatar_metrics::{
-    cross_pairs, default_asset_dir, self_pairs, EvalPair, FaceScorer, IdentityNet, Mode, SourceFace,
+    cross_pairs, default_asset_dir, self_pairs, EvalPair, FaceScorer, IdentityModel, IdentityNet,
+    Mode, SourceFace,
 };
 use gagavatar_net::model::{Avatar, GagAvatar};
 use gagavatar_net::style_unet::Noise;
@@ -96,6 +97,10 @@ pub struct EvalArgs {
     /// safetensors; adds LPIPS.
     #[arg(long)]
     pub lpips: Option<PathBuf>,
+    /// CSIM with this ArcFace ONNX model (e.g. InsightFace's IResNet-50/100 export, weights
+    /// inside the file) instead of the shipped dlib ResNet.
+    #[arg(long)]
+    pub arcface: Option<PathBuf>,
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
@@ -103,8 +108,8 @@ pub struct EvalArgs {
 
 pub fn run(a: EvalArgs) -> Result<()> {
     if a.mode.is_none() {
-        if a.out.is_some() || a.ground_truth_as_result {
-            bail!("-o and --ground-truth-as-result belong to the paper's protocol: add --mode self|cross|both");
+        if a.out.is_some() || a.ground_truth_as_result || a.arcface.is_some() {
+            bail!("-o, --arcface and --ground-truth-as-result belong to the paper's protocol: add --mode self|cross|both");
         }
         return crate::cmd_train::run_eval(a);
     }
@@ -312,8 +317,17 @@ pub fn run_protocol(a: &EvalArgs, out: &Path) -> Result<Outcome> {
 
     let asset = load_flame_asset(a.flame.as_deref())?;
     let rig = LandmarkRig::for_tracking(&asset)?;
-    let identity = IdentityNet::load(&default_asset_dir())
-        .context("loading the identity models (assets/identity)")?;
+    let identity = match &a.arcface {
+        Some(p) => IdentityModel::ArcFace(
+            gagavatar_metrics::arcface::ArcFace::load(p)
+                .with_context(|| format!("loading ArcFace {}", p.display()))?,
+        ),
+        None => IdentityModel::Dlib(
+            IdentityNet::load(&default_asset_dir())
+                .context("loading the identity models (assets/identity)")?,
+        ),
+    };
+    let identity_name = identity.name();
     let scorer = FaceScorer::new(identity, rig)?;
     let lpips = a
         .lpips
@@ -428,7 +442,8 @@ pub fn run_protocol(a: &EvalArgs, out: &Path) -> Result<Outcome> {
         "ground_truth_as_result": a.ground_truth_as_result,
         "flame": a.flame.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "synthetic".into()),
         "lpips": a.lpips.is_some(),
-        "identity": "dlib face-recognition ResNet v1 (CSIM)",
+        "identity": identity_name,
+        "arcface": a.arcface.as_ref().map(|p| p.display().to_string()),
         "pose_estimator": "gagavatar-track photo fit (FLAME), not the paper's BFM regressor",
         "realign_size": gagavatar_metrics::REALIGN_SIZE,
     });

@@ -168,6 +168,28 @@ fn paper_protocol_on_a_synthetic_split() {
         }
     }
 
+    // CSIM through a user's ArcFace ONNX model (the tiny golden network stands in for one).
+    let onnx = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../crates/metrics/tests/golden/arcface_tiny.onnx");
+    let arc = dir.join("arcface");
+    ok(&[
+        "eval",
+        "--ground-truth-as-result",
+        "--data",
+        &s(&data),
+        "--mode",
+        "self",
+        "-o",
+        &s(&arc),
+        "--arcface",
+        &s(&onnx),
+        "--threads",
+        "2",
+    ]);
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(arc.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["meta"]["identity"], "ArcFace (user ONNX model)");
+
     fails(
         &[
             "eval",

@@ -1,6 +1,6 @@
 //! AED and APD: how far the result's expression and head pose are from the driver's, both
 //! estimated from the images by our own tracker (`crates/track`, a photo fit of FLAME and the
-//! release camera to MediaPipe's landmarks). The paper estimated them with a 3DMM (BFM)
+//! release camera to MediaPipe's landmarks, shape prior [`METRIC_SHAPE_PRIOR`]). The paper estimated them with a 3DMM (BFM)
 //! regressor; ours are FLAME's codes, so the values are comparable in kind only.
 //!
 //! Definitions (the README's "Evaluation protocol"):
@@ -100,6 +100,14 @@ pub fn apd(a: &ExpressionPose, b: &ExpressionPose) -> f64 {
     sin.atan2(cos).to_degrees()
 }
 
+/// The shape prior of the metrics' photo fits: 10x the tracker's default (4). One photo's
+/// landmarks leave head rotation and the 100 shape components partly interchangeable; with the
+/// default prior the fit explains MediaPipe's landmarks on synthetic renders within 1-2 px
+/// yet lands 12-58 degrees from the true head rotation, with this one 6-13 degrees (one
+/// MediaPipe miss aside), measured on 8 synthetic 512 heads
+/// (`tests/reference_checks.rs` prints the per-frame numbers).
+pub const METRIC_SHAPE_PRIOR: f64 = 40.0;
+
 /// Estimates expression and pose from landmarks with the tracker's photo fit.
 #[derive(Debug)]
 pub struct PoseEstimator {
@@ -110,6 +118,13 @@ pub struct PoseEstimator {
 impl PoseEstimator {
     pub fn new(rig: LandmarkRig, options: TrackOptions) -> Self {
         Self { rig, options }
+    }
+
+    /// The estimator AED and APD use: the tracker's options with [`METRIC_SHAPE_PRIOR`].
+    pub fn for_metrics(rig: LandmarkRig) -> Self {
+        let mut options = TrackOptions::default();
+        options.fit.shape_prior = METRIC_SHAPE_PRIOR;
+        Self::new(rig, options)
     }
 
     pub fn options(&self) -> &TrackOptions {

@@ -49,6 +49,6 @@ pub use identity::{csim, AlignedFace, Embedding, FaceResNet, IdentityNet, EMBEDD
 pub use protocol::{cross_pairs, self_pairs, EvalPair, Mode};
 pub use realign::{Realignment, REALIGN_SIZE};
 pub use report::PairRow;
-pub use scorer::{FaceScorer, SourceFace};
+pub use scorer::{FaceScorer, IdentityModel, SourceFace};
 pub use shape_predictor::{IntensityImage, Landmarks5, ShapePredictor, MIN_FACE_SIDE};
 pub use weights::{default_asset_dir, ASSET_DIR, RESNET_FILE, SHAPE_PREDICTOR_FILE};

@@ -6,9 +6,10 @@
 //! 1. the reference (target / driver) gets its crop ([`crate::realign`]); result and reference
 //!    are cut to it at 512;
 //! 2. MediaPipe's landmarks on both realigned images;
-//! 3. CSIM = cosine of dlib's identity descriptors of the realigned result and of the source
-//!    (the source realigned on its own face, [`FaceScorer::source`]); the face rectangle given
-//!    to dlib's 5-point predictor is the bounding box of the face's 68 iBUG points;
+//! 3. CSIM = cosine of the identity descriptors of the realigned result and of the source
+//!    (the source realigned on its own face, [`FaceScorer::source`]): dlib's ResNet by
+//!    default (the face rectangle given to dlib's 5-point predictor is the bounding box of the
+//!    face's 68 iBUG points), or a user's ArcFace ONNX model ([`crate::arcface`]);
 //! 4. AED / APD from the tracker's photo fits of the result and the reference
 //!    ([`crate::expression_pose`]);
 //! 5. AKD between the two faces' 68 points (self reenactment only: it needs ground truth).
@@ -23,10 +24,11 @@ use gagavatar_track::rig::LandmarkRig;
 use image::RgbImage;
 
 use crate::akd::{akd, ibug68};
+use crate::arcface::{cosine, ArcFace};
 use crate::error::{input_err, Result};
 use crate::expression_pose::{aed, apd, PoseEstimator};
 use crate::geometry::FaceRect;
-use crate::identity::{Embedding, IdentityNet};
+use crate::identity::IdentityNet;
 use crate::protocol::Mode;
 use crate::realign::{detect_landmarks, Realignment};
 use crate::report::PairRow;
@@ -35,7 +37,25 @@ use crate::report::PairRow;
 #[derive(Debug, Clone)]
 pub struct SourceFace {
     /// `None`: no face found on the source.
-    pub embedding: Option<Embedding>,
+    pub embedding: Option<Vec<f32>>,
+}
+
+/// The network CSIM uses.
+#[derive(Debug)]
+pub enum IdentityModel {
+    /// dlib's face-recognition ResNet (shipped, public domain).
+    Dlib(IdentityNet),
+    /// A user's ArcFace ONNX model (the paper's choice).
+    ArcFace(ArcFace),
+}
+
+impl IdentityModel {
+    pub fn name(&self) -> &'static str {
+        match self {
+            IdentityModel::Dlib(_) => "dlib face-recognition ResNet v1",
+            IdentityModel::ArcFace(_) => "ArcFace (user ONNX model)",
+        }
+    }
 }
 
 /// One image after realignment: the 512 crop and its face, if any.
@@ -57,7 +77,7 @@ pub struct RealignedPair {
 #[derive(Debug)]
 pub struct FaceScorer {
     mesh: FaceMesh,
-    identity: IdentityNet,
+    identity: IdentityModel,
     pose: PoseEstimator,
     framing: FramingCalibration,
 }
@@ -77,14 +97,13 @@ pub fn face_rect(lm: &FaceLandmarks) -> Result<FaceRect> {
 
 impl FaceScorer {
     /// `rig`: the tracker's landmark rig of the FLAME asset the poses are fitted with.
-    pub fn new(identity: IdentityNet, rig: LandmarkRig) -> Result<Self> {
+    pub fn new(identity: IdentityModel, rig: LandmarkRig) -> Result<Self> {
         let mesh = FaceMesh::new().map_err(|e| input_err("face models", e.to_string()))?;
-        let options = TrackOptions::default();
         Ok(Self {
             mesh,
             identity,
-            framing: options.framing,
-            pose: PoseEstimator::new(rig, options),
+            framing: TrackOptions::default().framing,
+            pose: PoseEstimator::for_metrics(rig),
         })
     }
 
@@ -92,7 +111,7 @@ impl FaceScorer {
         &self.mesh
     }
 
-    pub fn identity(&self) -> &IdentityNet {
+    pub fn identity(&self) -> &IdentityModel {
         &self.identity
     }
 
@@ -100,12 +119,17 @@ impl FaceScorer {
         &self.pose
     }
 
-    /// The descriptor of a face in a realigned image, `None` without a face or when dlib's
+    /// The descriptor of a face in a realigned image, `None` without a face or when the
     /// alignment fails on it.
-    pub fn embed(&self, face: &RealignedFace) -> Option<Embedding> {
+    pub fn embed(&self, face: &RealignedFace) -> Option<Vec<f32>> {
         let lm = face.landmarks.as_ref()?;
-        let rect = face_rect(lm).ok()?;
-        self.identity.embed(&face.image, rect).ok()
+        match &self.identity {
+            IdentityModel::Dlib(net) => {
+                let rect = face_rect(lm).ok()?;
+                Some(net.embed(&face.image, rect).ok()?.unit().ok()?.to_vec())
+            }
+            IdentityModel::ArcFace(net) => net.embed(&face.image, lm).ok(),
+        }
     }
 
     /// The source realigned on its own face, and its descriptor.
@@ -150,7 +174,7 @@ impl FaceScorer {
         row.realigned = pair.realignment.from_landmarks;
         row.result_face = pair.result.landmarks.is_some();
         if let (Some(s), Some(r)) = (&source.embedding, self.embed(&pair.result)) {
-            row.csim = s.cosine(&r).ok();
+            row.csim = cosine(s, &r).ok();
         }
         if let (Some(lr), Some(lt)) = (&pair.result.landmarks, &pair.reference.landmarks) {
             let (w, h) = pair.result.image.dimensions();
