@@ -700,13 +700,16 @@ fn bench_eval(a: EvalBench) -> Result<()> {
         threads: Some(a.threads),
     };
     let load_before = load_average();
+    let cpu0 = cpu_seconds(false);
     let result = crate::cmd_eval::run_protocol(&args, &out);
+    let cpu = cpu_seconds(false) - cpu0;
     let load_after = load_average();
     let _ = std::fs::remove_dir_all(&out);
     let o = result?;
     println!(
-        "eval protocol, {} self pairs, {} threads{}: metrics {:.1} ms a pair ({:.2} s wall in \
-         all), rendering {:.2} s; load average before {load_before}, after {load_after}",
+        "eval protocol, {} self pairs, {} threads{}: metrics {:.1} ms a pair wall ({:.2} s in \
+         all), rendering {:.2} s; CPU time of the whole run {:.1} ms a pair (all threads, loading \
+         included); load average before {load_before}, after {load_after}",
         o.scored,
         a.threads,
         if args.lpips.is_some() {
@@ -717,6 +720,7 @@ fn bench_eval(a: EvalBench) -> Result<()> {
         o.metrics_ms_per_pair(),
         o.metrics.as_secs_f64(),
         o.render.as_secs_f64(),
+        cpu * 1e3 / o.scored.max(1) as f64,
     );
     Ok(())
 }

@@ -26,8 +26,9 @@ use gagavatar_metrics::{
 use gagavatar_net::model::{Avatar, GagAvatar};
 use gagavatar_net::style_unet::Noise;
 use gagavatar_track::rig::LandmarkRig;
+use gagavatar_train::metrics::{psnr_slice, ssim_plane, SsimWindows, LUMA};
 use gagavatar_train::pairs::SampleSource;
-use gagavatar_train::{psnr, ssim_gray, Lpips};
+use gagavatar_train::Lpips;
 use image::RgbImage;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
@@ -228,18 +229,41 @@ fn chw_tensor(img: &RgbImage) -> Result<Tensor> {
     Ok((t / 255.0)?)
 }
 
-/// PSNR, SSIM (and LPIPS) of the realigned result against the realigned ground truth.
+/// PSNR, SSIM (and LPIPS) of the realigned result against the realigned ground truth: the
+/// training validation's definitions (PSNR over RGB in [0, 1]; SSIM on luma, 11x11 Gaussian
+/// window, reflect padding), computed on the 8-bit images directly.
 fn pixel_scores(
     row: &mut PairRow,
     result: &RgbImage,
     gt: &RgbImage,
     lpips: Option<&Lpips>,
 ) -> Result<()> {
-    let (r, g) = (chw_tensor(result)?, chw_tensor(gt)?);
-    row.psnr = Some(psnr(&r, &g)?);
-    row.ssim = Some(ssim_gray(&r, &g)?);
+    let (w, h) = (gt.width() as usize, gt.height() as usize);
+    if result.dimensions() != gt.dimensions() {
+        bail!("realigned images differ in size");
+    }
+    let unit =
+        |img: &RgbImage| -> Vec<f64> { img.as_raw().iter().map(|&v| v as f64 / 255.0).collect() };
+    let luma = |img: &RgbImage| -> Vec<f64> {
+        img.pixels()
+            .map(|p| {
+                (LUMA[0] * p[0] as f64 + LUMA[1] * p[1] as f64 + LUMA[2] * p[2] as f64) / 255.0
+            })
+            .collect()
+    };
+    row.psnr = Some(psnr_slice(&unit(result), &unit(gt)));
+    row.ssim = Some(ssim_plane(
+        &luma(result),
+        &luma(gt),
+        h,
+        w,
+        SsimWindows::Reflect,
+    )?);
     if let Some(net) = lpips {
-        row.lpips = net.distances(&r, &g)?.first().copied();
+        row.lpips = net
+            .distances(&chw_tensor(result)?, &chw_tensor(gt)?)?
+            .first()
+            .copied();
     }
     Ok(())
 }
