@@ -349,7 +349,7 @@ pub fn reshape_dims(input: &[usize], spec: &[i64]) -> std::result::Result<Vec<us
     }
     let known: usize = out.iter().product();
     if let Some(i) = infer {
-        if known == 0 || total % known != 0 {
+        if known == 0 || !total.is_multiple_of(known) {
             return Err(format!("shape {spec:?} does not divide {total} values"));
         }
         out[i] = total / known;
