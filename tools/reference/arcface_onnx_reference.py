@@ -3,7 +3,7 @@ reader and graph runner (`src/onnx.rs`, `src/arcface.rs`).
 
 The graph uses every operator the runner supports, in the shapes InsightFace's IResNet exports
 use them (input normalisation by Sub/Mul, Conv with bias, strides, groups, dilations and
-asymmetric pads, BatchNormalization on 4-D and 2-D inputs, PRelu with [C, 1, 1] slopes, residual
+asymmetric pads, Constant nodes (int64 and float), BatchNormalization on 4-D and 2-D inputs, PRelu with [C, 1, 1] slopes, residual
 Add, Relu, Reshape with 0 / -1, Flatten, Gemm with transB, Dropout, Identity, Div, MatMul,
 GlobalAveragePool), with seeded random weights. Its output on a fixed input is computed by the
 `onnx` package's own reference evaluator (`onnx.reference.ReferenceEvaluator`), which is
@@ -46,15 +46,18 @@ def main(out: Path) -> None:
         "sc.w": w(8, 8, 1, 1),
         "c3.w": w(8, 8, 3, 3),
         "c4.w": w(8, 8, 4, 4), "c4.b": w(8),
-        "shape": np.array([0, -1], np.int64),
         "fc.w": w(16, 392, scale=0.05), "fc.b": w(16),
         "bn2.s": (1 + w(16, scale=0.1)), "bn2.b": w(16), "bn2.m": w(16), "bn2.v": (0.5 + np.abs(w(16))),
-        "two": np.array([2.0], np.float32),
         "proj": w(16, 8),
         "gw": w(8, 8, 1, 1),
     }
     N = helper.make_node
     nodes = [
+        # Constants as nodes (as torch exports write them) rather than initializers.
+        N("Constant", [], ["shape"], name="shape_const",
+          value=numpy_helper.from_array(np.array([0, -1], np.int64), "shape_value")),
+        N("Constant", [], ["two"], name="two_const",
+          value=numpy_helper.from_array(np.array([2.0], np.float32), "two_value")),
         N("Sub", ["data", "mean"], ["n0"], name="sub"),
         N("Mul", ["n0", "scale"], ["n1"], name="mul"),
         N("Conv", ["n1", "c1.w", "c1.b"], ["a1"], name="conv1", kernel_shape=[3, 3], strides=[2, 2], pads=[1, 1, 1, 1]),

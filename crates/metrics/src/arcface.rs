@@ -3,7 +3,8 @@
 //! file. The graph is read by [`crate::onnx`] and run here node by node on candle, for the
 //! operators such feed-forward face-recognition networks use: Conv (groups, dilations,
 //! asymmetric pads), BatchNormalization, PRelu, Relu, Add, Sub, Mul, Div, Flatten, Gemm,
-//! MatMul, Reshape, GlobalAveragePool, Identity and Dropout (inference). Any other operator is
+//! MatMul, Reshape, GlobalAveragePool, Identity, Dropout (inference) and Constant (folded at
+//! load). Any other operator is
 //! refused when the file is loaded, naming it.
 //!
 //! Input: the face aligned to ArcFace's 112 x 112 five-point template (eye centres, nose tip,
@@ -38,7 +39,8 @@ pub const ARCFACE_TEMPLATE: [[f64; 2]; 5] = [
 /// MediaPipe mesh indices of the template's points (iris centres, nose tip, mouth corners).
 pub const MEDIAPIPE_FIVE: [usize; 5] = [468, 473, 1, 61, 291];
 
-const SUPPORTED: [&str; 15] = [
+const SUPPORTED: [&str; 16] = [
+    "Constant",
     "Conv",
     "BatchNormalization",
     "PRelu",
@@ -78,7 +80,24 @@ impl ArcFace {
     }
 
     pub fn from_bytes(bytes: &[u8]) -> Result<Self> {
-        let graph = parse_model(bytes)?;
+        let mut graph = parse_model(bytes)?;
+        // Constant nodes become initializers: their values are known before the run.
+        let mut kept = Vec::with_capacity(graph.nodes.len());
+        for node in std::mem::take(&mut graph.nodes) {
+            if node.op_type != "Constant" {
+                kept.push(node);
+                continue;
+            }
+            let (Some(out), Some(Attribute::Tensor(t))) =
+                (node.outputs.first(), node.attributes.get("value"))
+            else {
+                return Err(err(&node, "only `value` tensor constants are supported"));
+            };
+            let mut t = t.clone();
+            t.name = out.clone();
+            graph.initializers.insert(out.clone(), t);
+        }
+        graph.nodes = kept;
         let mut unsupported: Vec<&str> = graph
             .nodes
             .iter()
