@@ -682,6 +682,7 @@ fn bench_eval(a: EvalBench) -> Result<()> {
     let _ = std::fs::remove_dir_all(&out);
     let args = crate::cmd_eval::EvalArgs {
         ground_truth_as_result: a.ckpt.is_none(),
+        source_as_result: false,
         ckpt: a.ckpt,
         data: a.data,
         split: a.split,

@@ -80,8 +80,12 @@ pub struct EvalArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Score the reference itself as the result (no model): the sanity floor of every metric.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "source_as_result")]
     pub ground_truth_as_result: bool,
+    /// Score the source photo itself as the result (no model): the copy-the-source baseline
+    /// (no motion at all).
+    #[arg(long)]
+    pub source_as_result: bool,
     /// Pairs rendered, then scored in parallel, per batch (the CSV is written after each).
     #[arg(long, default_value_t = 8)]
     pub batch: usize,
@@ -109,8 +113,9 @@ pub struct EvalArgs {
 
 pub fn run(a: EvalArgs) -> Result<()> {
     if a.mode.is_none() {
-        if a.out.is_some() || a.ground_truth_as_result || a.arcface.is_some() {
-            bail!("-o, --arcface and --ground-truth-as-result belong to the paper's protocol: add --mode self|cross|both");
+        if a.out.is_some() || a.ground_truth_as_result || a.source_as_result || a.arcface.is_some()
+        {
+            bail!("-o, --arcface, --ground-truth-as-result and --source-as-result belong to the paper's protocol: add --mode self|cross|both");
         }
         return crate::cmd_train::run_eval(a);
     }
@@ -358,11 +363,14 @@ pub fn run_protocol(a: &EvalArgs, out: &Path) -> Result<Outcome> {
         .as_deref()
         .map(|p| Lpips::load(p, &Device::Cpu))
         .transpose()?;
-    let mut renderer = if a.ground_truth_as_result {
+    let mut renderer = if a.ground_truth_as_result || a.source_as_result {
         None
     } else {
         let ckpt = a.ckpt.as_deref().ok_or_else(|| {
-            anyhow::anyhow!("--ckpt is required (or --ground-truth-as-result for the sanity run)")
+            anyhow::anyhow!(
+                "--ckpt is required (or --ground-truth-as-result / --source-as-result for the \
+                 baselines)"
+            )
         })?;
         let explicit = a
             .preset
@@ -409,6 +417,7 @@ pub fn run_protocol(a: &EvalArgs, out: &Path) -> Result<Outcome> {
                 Some(r) => r
                     .render(pair)
                     .with_context(|| format!("rendering {} <- {}", pair.driver, pair.source))?,
+                None if a.source_as_result => dataset.image(&pair.source)?,
                 None => reference.clone(),
             };
             jobs.push((pair, result, reference));
@@ -464,6 +473,7 @@ pub fn run_protocol(a: &EvalArgs, out: &Path) -> Result<Outcome> {
         "seed": a.seed,
         "ckpt": a.ckpt.as_ref().map(|p| p.display().to_string()),
         "ground_truth_as_result": a.ground_truth_as_result,
+        "source_as_result": a.source_as_result,
         "flame": a.flame.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "synthetic".into()),
         "lpips": a.lpips.is_some(),
         "identity": identity_name,

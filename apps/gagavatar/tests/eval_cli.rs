@@ -168,6 +168,28 @@ fn paper_protocol_on_a_synthetic_split() {
         }
     }
 
+    // The copy-the-source baseline: the source photo as every result.
+    let src = dir.join("src");
+    ok(&[
+        "eval",
+        "--source-as-result",
+        "--data",
+        &s(&data),
+        "--mode",
+        "self",
+        "-o",
+        &s(&src),
+        "--threads",
+        "2",
+    ]);
+    for r in csv_rows(&src.join("scores.csv")) {
+        let psnr: f64 = r[3].parse().unwrap();
+        assert!(
+            psnr.is_finite(),
+            "another frame is no copy of the target: {r:?}"
+        );
+    }
+
     // CSIM through a user's ArcFace ONNX model (the tiny golden network stands in for one).
     let onnx = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../../crates/metrics/tests/golden/arcface_tiny.onnx");
