@@ -733,14 +733,17 @@ fn bench_track(args: TrackBench) -> Result<()> {
         fps.push(s.frames as f64 / secs);
         stages.push(s.seconds.map(|x| 1e3 * x / s.frames as f64));
         println!(
-            "  video run {r}: {:.1} frames/s ({:.1} ms/frame: decode + landmarks {:.1}, fit {:.1}, \
-             crop + matte + JPEG + write {:.1}); CPU {:.1} ms/frame; {} frames without a face",
+            "  video run {r}: {:.1} frames/s ({:.1} ms/frame: decode + landmarks {:.1}, fit while \
+             cropping + matting + JPEG {:.1}, \
+             write {:.1}); CPU {:.1} ms/frame in all, {:.1} of it the fit's thread; {} frames \
+             without a face",
             s.frames as f64 / secs,
             1e3 * secs / s.frames as f64,
             stages[r][0],
             stages[r][1],
             stages[r][2],
             1e3 * cpu / s.frames as f64,
+            1e3 * s.fit_cpu_seconds / s.frames as f64,
             s.no_face
         );
         let _ = std::fs::remove_dir_all(&out);

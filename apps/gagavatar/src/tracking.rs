@@ -20,8 +20,11 @@ use gagavatar_formats::atomic::write_atomic;
 use gagavatar_formats::image::{read_image, sniff, DecodeOptions};
 use gagavatar_track::camera::CameraPose;
 use gagavatar_track::crop::{apply_matte, crop_image};
-use gagavatar_track::output::{write_photo, write_video, IMAGES_DIR, OPTIM_FILE, SMOOTHED_FILE};
+use gagavatar_track::output::{
+    encode_jpeg, write_photo, write_video_jpegs, IMAGES_DIR, OPTIM_FILE, SMOOTHED_FILE,
+};
 use gagavatar_track::overlay::{draw_fit, mesh_edges, MeshEdges, ProjectedMesh};
+use gagavatar_track::pipeline::video_windows;
 use gagavatar_track::{
     track_photo, track_video, CropWindow, FaceLandmarks, FrameTrack, LandmarkRig, Observation,
     TrackError, TrackOptions, TrackedPhoto, TrackedVideo,
@@ -105,6 +108,22 @@ pub struct VideoSummary {
     pub video: TrackedVideo,
     /// Wall seconds of the three passes: decode + landmarks, fit, crop + matte + JPEG + write.
     pub seconds: [f64; 3],
+    /// CPU seconds of the thread that ran the fit (the fit is sequential over frames).
+    pub fit_cpu_seconds: f64,
+}
+
+/// CPU seconds (user + system) of the calling thread; 0 where unavailable.
+pub fn thread_cpu_seconds() -> f64 {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: getrusage only writes the struct it is given.
+        let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
+        if unsafe { libc::getrusage(libc::RUSAGE_THREAD, &mut ru) } == 0 {
+            let t = |tv: libc::timeval| tv.tv_sec as f64 + tv.tv_usec as f64 * 1e-6;
+            return t(ru.ru_utime) + t(ru.ru_stime);
+        }
+    }
+    0.0
 }
 
 /// The models a tracking run needs, loaded once.
@@ -205,9 +224,15 @@ impl Tracker {
         Ok(photo)
     }
 
+    /// The JPEG of a frame's matted crop, as `img_lmdb/` stores it.
+    fn crop_jpeg(&self, frame: &RgbImage, window: &CropWindow) -> Result<Vec<u8>> {
+        Ok(encode_jpeg(&self.matted_crop(frame, window)?)?)
+    }
+
     /// Tracks a video (any video file, or a folder of images) into `dir`: landmarks frame by
-    /// frame, the fit over the whole clip, then the crops; with `overlay`, a video of the fit
-    /// drawn over the original frames. Progress bars on stderr.
+    /// frame, then the fit over the whole clip while the crops are made on another thread (the
+    /// crop windows depend on the landmarks only); with `overlay`, a video of the fit drawn over
+    /// the original frames. Progress bars on stderr.
     pub fn track_video_file(
         &self,
         path: &Path,
@@ -219,8 +244,8 @@ impl Tracker {
         let reader = VideoReader::open(path, &ReadOptions::default())?;
         let fps = reader.output_fps();
         let bar = match reader.expected_frames() {
-            Some(n) => progress(n as usize, "1/3 landmarks"),
-            None => spinner("1/3 landmarks"),
+            Some(n) => progress(n as usize, "1/2 landmarks"),
+            None => spinner("1/2 landmarks"),
         };
         let mut tracker = FaceTracker::with_models(self.mesh.clone());
         let mut obs = Vec::new();
@@ -250,69 +275,76 @@ impl Tracker {
         }
         let no_face = obs.iter().filter(|o| o.landmarks.is_none()).count();
         let (w, h) = (obs[0].width, obs[0].height);
+        let windows = video_windows(&obs, &self.opts, &label)?.windows;
         let t1 = Instant::now();
-        let bar = progress(n, "2/3 fit");
-        let video = track_video(obs, &self.rig, &self.opts, &label, |d, _| {
-            bar.set_position(d as u64)
-        })?;
-        bar.finish_and_clear();
+
+        let bar = progress(2 * n, "2/2 fit | crop, matte, JPEG");
+        let (video, jpegs, fit_cpu) = match &kept {
+            // The fit on a second thread, the crops here; both pass over every frame once.
+            Some(frames) => std::thread::scope(|s| {
+                let fit = s.spawn(|| {
+                    let c0 = thread_cpu_seconds();
+                    let v = track_video(obs, &self.rig, &self.opts, &label, |_, _| bar.inc(1));
+                    (v, thread_cpu_seconds() - c0)
+                });
+                let jpegs: Result<Vec<Vec<u8>>> = frames
+                    .iter()
+                    .zip(&windows)
+                    .map(|(f, win)| {
+                        crate::check_interrupt()?;
+                        let j = self.crop_jpeg(f, win);
+                        bar.inc(1);
+                        j
+                    })
+                    .collect();
+                let (video, cpu) = fit
+                    .join()
+                    .map_err(|_| anyhow::anyhow!("the fit thread panicked"))?;
+                anyhow::Ok((video?, Some(jpegs?), cpu))
+            })?,
+            None => {
+                let c0 = thread_cpu_seconds();
+                let v = track_video(obs, &self.rig, &self.opts, &label, |_, _| bar.inc(1))?;
+                (v, None, thread_cpu_seconds() - c0)
+            }
+        };
+        if let Some(i) = (0..n).find(|&i| video.frames[i].window != windows[i]) {
+            bail!("internal: frame {i}'s crop window differs between the crop and the fit");
+        }
         let t2 = Instant::now();
-        let frames: Box<dyn Iterator<Item = Result<RgbImage>>> = match kept {
-            Some(k) => Box::new(k.into_iter().map(Ok)),
-            None => Box::new(
-                VideoReader::open(path, &ReadOptions::default())?
-                    .map(|f| f.map(|f| f.rgb).map_err(anyhow::Error::from)),
-            ),
-        };
-        let mut writer = overlay
-            .map(|p| {
-                let opts = VideoOptions {
-                    fps,
-                    watermark: false,
-                };
-                VideoWriter::create(p, w as usize, h as usize, opts)
-                    .with_context(|| format!("creating {}", p.display()))
-            })
-            .transpose()?;
-        let bar = progress(n, "3/3 crop, matte, JPEG");
-        let mut failure: Option<anyhow::Error> = None;
-        let mut one = |frame: Result<RgbImage>, track: &FrameTrack| -> Result<RgbImage> {
-            crate::check_interrupt()?;
-            let frame = frame?;
-            if frame.dimensions() != (w, h) {
-                bail!(
-                    "{label}: a frame is {}x{}, the first was {w}x{h}",
-                    frame.width(),
-                    frame.height()
-                );
-            }
-            let crop = self.matted_crop(&frame, &track.window)?;
-            if let Some(wr) = &mut writer {
-                wr.push_rgb(self.draw(&frame, track)?.as_raw())?;
-            }
-            bar.inc(1);
-            Ok(crop)
-        };
-        let crops = frames.zip(&video.frames).map(|(frame, track)| {
-            one(frame, track).map_err(|e| {
-                failure = Some(e);
-                // Stops the writer; the real error is `failure`.
-                TrackError::Output {
-                    path: dir.to_owned(),
-                    reason: "stopped".into(),
+        let name = input_name(path);
+        match jpegs {
+            Some(j) => write_video_jpegs(dir, &name, &video, j.into_iter().map(Ok))?,
+            None => {
+                // A long video: decoded again, cropped while written.
+                let mut failure: Option<anyhow::Error> = None;
+                let frames = VideoReader::open(path, &ReadOptions::default())?;
+                let jpegs = frames.zip(&windows).map(|(f, win)| {
+                    let j = crate::check_interrupt()
+                        .and_then(|()| Ok(f?.rgb))
+                        .and_then(|f| self.crop_jpeg(&f, win));
+                    bar.inc(1);
+                    j.map_err(|e| {
+                        failure = Some(e);
+                        // Stops the writer; the real error is `failure`.
+                        TrackError::Output {
+                            path: dir.to_owned(),
+                            reason: "stopped".into(),
+                        }
+                    })
+                });
+                let written = write_video_jpegs(dir, &name, &video, jpegs);
+                if let Some(e) = failure {
+                    return Err(e);
                 }
-            })
-        });
-        let written = write_video(dir, &input_name(path), &video, crops);
+                written?;
+            }
+        }
         bar.finish_and_clear();
-        if let Some(e) = failure {
-            return Err(e);
-        }
-        written?;
-        if let Some(wr) = writer {
-            wr.finish()?;
-        }
         let t3 = Instant::now();
+        if let Some(p) = overlay {
+            self.write_video_overlay(path, p, kept.as_deref(), &video, w, h, fps)?;
+        }
         Ok(VideoSummary {
             frames: n,
             fps,
@@ -323,7 +355,53 @@ impl Tracker {
                 (t2 - t1).as_secs_f64(),
                 (t3 - t2).as_secs_f64(),
             ],
+            fit_cpu_seconds: fit_cpu,
         })
+    }
+
+    /// The fit drawn over every frame, as a video at `out` (format by extension).
+    #[allow(clippy::too_many_arguments)]
+    fn write_video_overlay(
+        &self,
+        input: &Path,
+        out: &Path,
+        kept: Option<&[RgbImage]>,
+        video: &TrackedVideo,
+        w: u32,
+        h: u32,
+        fps: f64,
+    ) -> Result<()> {
+        let opts = VideoOptions {
+            fps,
+            watermark: false,
+        };
+        let mut writer = VideoWriter::create(out, w as usize, h as usize, opts)
+            .with_context(|| format!("creating {}", out.display()))?;
+        let frames: Box<dyn Iterator<Item = Result<std::borrow::Cow<RgbImage>>>> = match kept {
+            Some(k) => Box::new(k.iter().map(|f| Ok(std::borrow::Cow::Borrowed(f)))),
+            None => Box::new(
+                VideoReader::open(input, &ReadOptions::default())?
+                    .map(|f| Ok(std::borrow::Cow::Owned(f?.rgb))),
+            ),
+        };
+        let bar = progress(video.frames.len(), "overlay");
+        for (frame, track) in frames.zip(&video.frames) {
+            crate::check_interrupt()?;
+            let frame = frame?;
+            if frame.dimensions() != (w, h) {
+                bail!(
+                    "{}: a frame is {}x{}, the first was {w}x{h}",
+                    input.display(),
+                    frame.width(),
+                    frame.height()
+                );
+            }
+            writer.push_rgb(self.draw(&frame, track)?.as_raw())?;
+            bar.inc(1);
+        }
+        bar.finish_and_clear();
+        writer.finish()?;
+        Ok(())
     }
 }
 
