@@ -1,5 +1,6 @@
 //! A picture of a fit for people to judge it: over the original frame, the fitted FLAME mesh
-//! (the edges of its camera-facing triangles, thin and semi-transparent), the detected
+//! (the edges of its camera-facing triangles inside the crop window, thin and
+//! semi-transparent), the detected
 //! landmarks and the fitted FLAME's 70 reprojected landmarks in two colours joined by a line
 //! (the error), and the crop window.
 //!
@@ -64,6 +65,17 @@ fn signed_area(points: &[Option<[f64; 2]>], tri: &[u32; 3]) -> Option<f64> {
     Some(0.5 * ((b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1])))
 }
 
+/// Pixels a drawing may touch: `[x0, y0, x1, y1)`.
+type Clip = [i64; 4];
+
+/// Alpha-blends `colour` into pixel (x, y) if it lies in the image and in `clip`.
+fn blend_in(img: &mut RgbImage, clip: &Clip, x: i64, y: i64, colour: [u8; 3], alpha: f32) {
+    if x < clip[0] || y < clip[1] || x >= clip[2] || y >= clip[3] {
+        return;
+    }
+    blend(img, x, y, colour, alpha);
+}
+
 /// Alpha-blends `colour` into pixel (x, y) if it lies in the image.
 fn blend(img: &mut RgbImage, x: i64, y: i64, colour: [u8; 3], alpha: f32) {
     if x < 0 || y < 0 || x >= img.width() as i64 || y >= img.height() as i64 {
@@ -79,6 +91,20 @@ fn blend(img: &mut RgbImage, x: i64, y: i64, colour: [u8; 3], alpha: f32) {
 /// A line of `width` pixels between two points (corner convention), blended at `alpha`.
 /// Points far outside the frame are clipped first so a wild projection costs nothing.
 fn line(img: &mut RgbImage, a: [f64; 2], b: [f64; 2], width: f64, colour: [u8; 3], alpha: f32) {
+    let all = [0, 0, img.width() as i64, img.height() as i64];
+    line_in(img, &all, a, b, width, colour, alpha)
+}
+
+/// [`line`] touching only the pixels in `clip`.
+fn line_in(
+    img: &mut RgbImage,
+    clip: &Clip,
+    a: [f64; 2],
+    b: [f64; 2],
+    width: f64,
+    colour: [u8; 3],
+    alpha: f32,
+) {
     if !(a.iter().chain(&b).all(|v| v.is_finite())) {
         return;
     }
@@ -110,13 +136,13 @@ fn line(img: &mut RgbImage, a: [f64; 2], b: [f64; 2], width: f64, colour: [u8; 3
         }
         last = (xi, yi);
         if r <= 0.5 {
-            blend(img, xi, yi, colour, alpha);
+            blend_in(img, clip, xi, yi, colour, alpha);
             continue;
         }
         for dy in -ri..=ri {
             for dx in -ri..=ri {
                 if ((dx * dx + dy * dy) as f64) <= r * r {
-                    blend(img, xi + dx, yi + dy, colour, alpha);
+                    blend_in(img, clip, xi + dx, yi + dy, colour, alpha);
                 }
             }
         }
@@ -153,6 +179,9 @@ pub fn draw_fit(
     // The window's side in 512-crop units: 1 at a 512 px window.
     let scale = (track.window.width().max(1) as f64 / 512.0).max(0.25);
     let thin = (0.9 * scale).max(1.0);
+    // The mesh is drawn inside the crop window only: that is what the model sees, and a fit
+    // whose far vertices fly off (a head seen from very close) stays readable.
+    let window = track.window.as_array();
     if let Some((m, edges)) = mesh {
         // Triangles facing the camera have a negative signed area in image coordinates (FLAME
         // winds them counter-clockwise seen from outside; the image's y points down). An edge
@@ -173,7 +202,7 @@ pub fn draw_fit(
             }
             let p = |i: u32| m.points.get(i as usize).copied().flatten();
             if let (Some(pa), Some(pb)) = (p(*a), p(*b)) {
-                line(&mut img, pa, pb, 1.0, MESH_COLOUR, MESH_ALPHA);
+                line_in(&mut img, &window, pa, pb, 1.0, MESH_COLOUR, MESH_ALPHA);
             }
         }
     }
@@ -189,7 +218,7 @@ pub fn draw_fit(
             0.9,
         );
     }
-    let r = (2.2 * scale).max(1.5);
+    let r = (2.5 * scale).max(2.0);
     if let Some(det) = &track.detected {
         for (d, f) in det.iter().zip(&track.reprojected) {
             if let (Some(d), Some(f)) = (d, f) {
@@ -200,8 +229,9 @@ pub fn draw_fit(
             disc(&mut img, *d, r, DETECTED_COLOUR, 0.95);
         }
     }
+    // Smaller than the detected discs, so both show where they coincide.
     for f in track.reprojected.iter().flatten() {
-        disc(&mut img, *f, r, FITTED_COLOUR, 0.95);
+        disc(&mut img, *f, 0.6 * r, FITTED_COLOUR, 0.95);
     }
     img
 }
@@ -240,5 +270,17 @@ mod tests {
         assert_eq!(img.get_pixel(19, 9)[2], 255);
         assert_eq!(img.get_pixel(0, 0), &Rgb([0, 0, 0]));
         assert!(img.pixels().all(|p| p[1] == 0), "the NaN line drew");
+        let mut img = RgbImage::new(20, 10);
+        line_in(
+            &mut img,
+            &[5, 0, 10, 10],
+            [0.0, 5.0],
+            [20.0, 5.0],
+            1.0,
+            [0, 255, 0],
+            1.0,
+        );
+        let lit: Vec<u32> = (0..20).filter(|&x| img.get_pixel(x, 5)[1] > 0).collect();
+        assert_eq!(lit, (5..10).collect::<Vec<u32>>());
     }
 }
