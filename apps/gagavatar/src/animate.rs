@@ -15,7 +15,8 @@ use gagavatar_net::style_unet::Noise;
 use gagavatar_video::{VideoOptions, VideoWriter};
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::cmd_model::{load_flame, preset, read_image};
+use crate::cmd_model::{image_tensor, load_flame, preset, read_image};
+use crate::tracking;
 
 /// The inputs every avatar command needs.
 #[derive(Debug, Args)]
@@ -27,13 +28,16 @@ pub struct SourceArgs {
     /// built-in synthetic asset that synth-data, train and the demo model use.
     #[arg(long)]
     pub flame: PathBuf,
-    /// Source photo (PNG/JPEG; resized with a notice when it is not image_size square).
+    /// Source: a photo (tracked now, or found in the tracking cache), a tracked folder
+    /// (`gagavatar track` output), or with --source-record the model-ready image (resized with a
+    /// notice when it is not image_size square).
     #[arg(long)]
     pub source: PathBuf,
-    /// Source tracking: a tracked-frame JSON record, or a release `optim.pkl` (with --source-key).
+    /// Source tracking: a tracked-frame JSON record, or a release `optim.pkl` (with
+    /// --source-key); without it the source is tracked.
     #[arg(long)]
-    pub source_record: PathBuf,
-    /// Frame name inside a `.pkl` source record (e.g. `video_000`).
+    pub source_record: Option<PathBuf>,
+    /// Frame name inside a `.pkl` source record or a tracked folder (e.g. `video_000`).
     #[arg(long)]
     pub source_key: Option<String>,
     /// Architecture, when the weights file does not say (the release `.pt` is `release`).
@@ -100,6 +104,79 @@ pub fn read_source_record(path: &Path, key: Option<&str>) -> Result<TrackedFrame
     Ok(gagavatar_data::read_source_record(path, key)?)
 }
 
+/// Where the source image comes from.
+pub enum SourceImage {
+    /// A file given with its record (`--source-record`).
+    File(PathBuf),
+    /// The 512 crop of a tracked folder.
+    Crop(image::RgbImage),
+}
+
+/// The source image and record, however they were given.
+pub struct ResolvedSource {
+    pub image: SourceImage,
+    pub record: TrackedFrame,
+    /// Names the record in errors.
+    pub label: String,
+}
+
+/// `--source` with `--source-record` as given; else `--source` is a tracked folder, or a photo
+/// tracked now (or found in the tracking cache). A photo without a face fails with "no face
+/// found in PATH" before anything is written.
+pub fn resolve_source(a: &SourceArgs) -> Result<ResolvedSource> {
+    if let Some(rec) = &a.source_record {
+        return Ok(ResolvedSource {
+            image: SourceImage::File(a.source.clone()),
+            record: read_source_record(rec, a.source_key.as_deref())?,
+            label: rec.display().to_string(),
+        });
+    }
+    let dir = if tracking::is_tracked_folder(&a.source) {
+        a.source.clone()
+    } else {
+        tracking::tracked_inline(&a.source, &a.flame, "source", true)?.dir
+    };
+    from_tracked_folder(&dir, a.source_key.as_deref())
+}
+
+/// Frame `key` of a tracked folder (its only frame when `key` is `None`): the crop from
+/// `img_lmdb/` and the record from `optim.pkl` (else `smoothed.pkl`).
+pub fn from_tracked_folder(dir: &Path, key: Option<&str>) -> Result<ResolvedSource> {
+    let pkl = [
+        gagavatar_track::output::OPTIM_FILE,
+        gagavatar_track::output::SMOOTHED_FILE,
+    ]
+    .iter()
+    .map(|f| dir.join(f))
+    .find(|p| p.is_file())
+    .with_context(|| format!("{} is not a tracked folder (no optim.pkl)", dir.display()))?;
+    let mut records = gagavatar_data::read_records(&pkl)?;
+    let key = match key {
+        Some(k) => k.to_owned(),
+        None if records.len() == 1 => records.keys().next().cloned().unwrap_or_default(),
+        None => bail!(
+            "{} holds {} frames: name one with --source-key (e.g. {})",
+            pkl.display(),
+            records.len(),
+            records.keys().next().cloned().unwrap_or_default()
+        ),
+    };
+    let record = records
+        .remove(&key)
+        .with_context(|| format!("{} has no frame `{key}`", pkl.display()))?;
+    let lmdb_path = dir.join(gagavatar_track::output::IMAGES_DIR);
+    let lmdb = gagavatar_data::LmdbReader::open(&lmdb_path)?;
+    let bytes = lmdb
+        .get(key.as_bytes())?
+        .with_context(|| format!("{} has no image `{key}`", lmdb_path.display()))?;
+    let image = gagavatar_data::decode_image(&bytes, &lmdb_path, &key)?;
+    Ok(ResolvedSource {
+        image: SourceImage::Crop(image),
+        record,
+        label: format!("`{key}` of {}", pkl.display()),
+    })
+}
+
 /// The 3x4 transform of a record as `[3, 4]` f32 values, or an error naming the record.
 pub fn record_transform(record: &TrackedFrame, what: &str) -> Result<[[f64; 4]; 3]> {
     record
@@ -116,10 +193,16 @@ pub fn transforms_tensor(tms: &[[[f64; 4]; 3]]) -> Result<Tensor> {
 }
 
 impl Session {
+    /// Resolves the source (tracking a raw photo first) and reconstructs the avatar.
     pub fn open(a: &SourceArgs) -> Result<Self> {
+        let src = resolve_source(a)?;
+        Self::open_resolved(a, src)
+    }
+
+    pub fn open_resolved(a: &SourceArgs, src: ResolvedSource) -> Result<Self> {
         let t0 = Instant::now();
         let explicit = a.preset.as_deref().map(preset).transpose()?;
-        let source = read_source_record(&a.source_record, a.source_key.as_deref())?;
+        let source = src.record;
         let source_tm = record_transform(&source, "the source record")?;
         let model = checkpoint::load_model(&a.ckpt, explicit.as_ref(), &Device::Cpu)
             .with_context(|| format!("loading {}", a.ckpt.display()))?;
@@ -132,10 +215,13 @@ impl Session {
                 model.cfg.n_vertices
             );
         }
-        let image = read_image(&a.source, model.cfg.image_size)?;
+        let image = match &src.image {
+            SourceImage::File(path) => read_image(path, model.cfg.image_size)?,
+            SourceImage::Crop(img) => image_tensor(img, model.cfg.image_size)?,
+        };
         let shape = source
             .params(&flame)
-            .with_context(|| format!("source record {}", a.source_record.display()))?
+            .with_context(|| format!("source record {}", src.label))?
             .shape;
         let identity = flame.identity(&shape)?;
         let source_transform = transforms_tensor(&[source_tm])?;

@@ -1,7 +1,8 @@
 //! `gagavatar demo`: the first command on a fresh machine. Uses only files the repository ships
 //! (`assets/demo/`: the trained demo model, a held-out synthetic identity and a driving sequence)
-//! and the built-in synthetic FLAME asset, and writes a reenactment video, an orbit video and a
-//! `.ply` into `./demo_out/`.
+//! and the built-in synthetic FLAME asset, and writes a reenactment video, an orbit video, a
+//! `.ply`, and the tracking of a real public-domain photo with its fit drawn over it into
+//! `./demo_out/`.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -13,12 +14,15 @@ use crate::animate::SourceArgs;
 use crate::cmd_model::SYNTHETIC_FLAME;
 use crate::cmd_orbit::{ExportPlyArgs, ExpressionArgs, OrbitArgs};
 use crate::cmd_reenact::ReenactArgs;
+use crate::tracking::Tracker;
 
 #[derive(Debug, Args)]
 #[command(
     after_help = "The demo model is the `tiny` preset trained on this CPU on synthetic \
 heads (`gagavatar synth-data`); the source identity was held out of training. Outputs: \
-demo_out/reenact.mp4 (driver | result), demo_out/orbit.mp4 and demo_out/avatar.ply.\n\n\
+demo_out/reenact.mp4 (driver | result), demo_out/orbit.mp4, demo_out/avatar.ply, and the \
+tracking of a real public-domain photo (assets/demo/astronaut.jpg): demo_out/astronaut_track/ \
+and its fit drawn over it, demo_out/astronaut_overlay.png.\n\n\
 Example:\n  gagavatar demo\n  gagavatar demo --assets assets/demo -o demo_out"
 )]
 pub struct DemoArgs {
@@ -32,7 +36,7 @@ pub struct DemoArgs {
 
 /// `assets/demo` from the working directory, else beside the source tree this binary was built
 /// from (so `cargo run -- demo` works from any directory of a checkout).
-fn find_assets(explicit: Option<&Path>) -> Result<PathBuf> {
+pub fn find_assets(explicit: Option<&Path>) -> Result<PathBuf> {
     if let Some(p) = explicit {
         return Ok(p.to_path_buf());
     }
@@ -55,6 +59,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         "source.png",
         "source.json",
         "driver.json",
+        "astronaut.jpg",
     ] {
         if !assets.join(f).is_file() {
             bail!("the demo assets in {} lack {f}", assets.display());
@@ -66,17 +71,17 @@ pub fn run(a: DemoArgs) -> Result<()> {
         ckpt: assets.join("weights.safetensors"),
         flame: PathBuf::from(SYNTHETIC_FLAME),
         source: assets.join("source.png"),
-        source_record: assets.join("source.json"),
+        source_record: Some(assets.join("source.json")),
         source_key: None,
         preset: None,
         n_shape: 300,
         n_exp: 100,
         fresh_noise: false,
     };
-    eprintln!("1/3 reenactment (driver | result)");
+    eprintln!("1/4 reenactment (driver | result)");
     crate::cmd_reenact::run(ReenactArgs {
         src: src(),
-        driver: assets.join("driver.json"),
+        driver: Some(assets.join("driver.json")),
         output: a.output.join("reenact.mp4"),
         side_by_side: true,
         driver_video: None,
@@ -86,7 +91,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         batch: 4,
         no_watermark: false,
     })?;
-    eprintln!("2/3 orbit");
+    eprintln!("2/4 orbit");
     crate::cmd_orbit::run_orbit(OrbitArgs {
         src: src(),
         output: a.output.join("orbit.mp4"),
@@ -98,14 +103,27 @@ pub fn run(a: DemoArgs) -> Result<()> {
         batch: 4,
         no_watermark: false,
     })?;
-    eprintln!("3/3 Gaussians as .ply");
+    eprintln!("3/4 Gaussians as .ply");
     crate::cmd_orbit::run_export_ply(ExportPlyArgs {
         src: src(),
         output: a.output.join("avatar.ply"),
         expression: ExpressionArgs::default(),
     })?;
+    eprintln!("4/4 tracking a real photo (astronaut.jpg, public domain: NASA via scikit-image)");
+    let tracker = Tracker::new(Path::new(SYNTHETIC_FLAME))?;
+    let photo = tracker.track_photo_file(
+        &assets.join("astronaut.jpg"),
+        &a.output.join("astronaut_track"),
+        Some(&a.output.join("astronaut_overlay.png")),
+    )?;
     eprintln!(
-        "demo done in {:.1} s: {}/reenact.mp4, orbit.mp4, avatar.ply",
+        "astronaut: landmark RMS {:.2} px at 512, crop window {:?}",
+        photo.frame.fit_rms_px.unwrap_or(f64::NAN),
+        photo.frame.window.as_array()
+    );
+    eprintln!(
+        "demo done in {:.1} s: {}/reenact.mp4, orbit.mp4, avatar.ply, astronaut_track/, \
+         astronaut_overlay.png",
         t0.elapsed().as_secs_f64(),
         a.output.display()
     );

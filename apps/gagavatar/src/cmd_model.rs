@@ -114,6 +114,18 @@ pub fn read_image(path: &Path, size: usize) -> Result<Tensor> {
     };
     let img = gagavatar_formats::image::read_image(path, &opts)?.rgb;
     let (w, h) = (img.width() as usize, img.height() as usize);
+    if h != size || w != size {
+        eprintln!(
+            "note: resizing {} from {w}x{h} to {size}x{size}",
+            path.display()
+        );
+    }
+    image_tensor(&img, size)
+}
+
+/// `[1, 3, size, size]` in [0, 1], resized (antialiased) when the image is not that size.
+pub fn image_tensor(img: &image::RgbImage, size: usize) -> Result<Tensor> {
+    let (w, h) = (img.width() as usize, img.height() as usize);
     let mut planar = vec![0f32; 3 * w * h];
     for (i, px) in img.pixels().enumerate() {
         for c in 0..3 {
@@ -122,10 +134,6 @@ pub fn read_image(path: &Path, size: usize) -> Result<Tensor> {
     }
     let t = Tensor::from_vec(planar, (1, 3, h, w), &Device::Cpu)?;
     if h != size || w != size {
-        eprintln!(
-            "note: resizing {} from {w}x{h} to {size}x{size}",
-            path.display()
-        );
         return Ok(resize(&t, size, size, ResizeMode::Antialias)?);
     }
     Ok(t)

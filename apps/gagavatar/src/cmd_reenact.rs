@@ -9,25 +9,36 @@ use gagavatar_data::DriverSequence;
 use gagavatar_video::read::{ReadOptions, Start, VideoReader};
 use gagavatar_video::VideoOptions;
 
-use crate::animate::{record_transform, side_by_side, FrameJob, Session, SourceArgs};
+use crate::animate::{
+    record_transform, resolve_source, side_by_side, FrameJob, Session, SourceArgs,
+};
+use crate::tracking;
 
 #[derive(Debug, Args)]
 #[command(
     after_help = "The avatar is reconstructed once from the source; every driver frame \
 uses the source's shape code with the driver's expression, jaw, eye pose and camera.\n\n\
+Raw inputs are tracked first (gagavatar track) and the result is cached by content (SHA-256 of \
+the input's bytes, the tracker version and the FLAME asset) in $GAGAVATAR_CACHE, else \
+$XDG_CACHE_HOME/gagavatar, else ~/.cache/gagavatar; a second run with the same inputs uses the \
+cache and says so. A source photo without a face fails with \"no face found in PATH\".\n\n\
 The driver is a release tracked folder (smoothed.pkl or optim.pkl, optional img_lmdb/ with the \
-driver frames) or a JSON file {\"fps\": 25, \"frames\": [record, ...]}. The output format \
-follows the extension: .mp4 (H.264), .gif, or anything else = a folder of PNGs.\n\n\
-Example:\n  gagavatar reenact --ckpt GAGAvatar.pt --flame FLAME_with_eye.pt --source me.png \\\n    \
---source-record me.json --driver tracked/video1 --side-by-side -o out.mp4\n  \
-gagavatar reenact ... --driver tracked/video1 --driver-video video1.mp4 -o out.mp4"
+driver frames), a JSON file {\"fps\": 25, \"frames\": [record, ...]}, or a raw video or folder \
+of images. The output format follows the extension: .mp4 (H.264), .gif, or anything else = a \
+folder of PNGs.\n\n\
+Examples:\n  gagavatar reenact --ckpt GAGAvatar.pt --flame FLAME_with_eye.pt --source me.jpg \\\n    \
+--driver video.mp4 --side-by-side -o out.mp4\n  \
+gagavatar reenact ... --source me.jpg --driver-video video.mp4 -o out.mp4   (original frames on the left)\n  \
+gagavatar reenact ... --source me.png --source-record me.json --driver tracked/video1 -o out.mp4"
 )]
 pub struct ReenactArgs {
     #[command(flatten)]
     pub src: SourceArgs,
-    /// Driving sequence: a release tracked folder or a JSON sequence.
+    /// Driving sequence: a release tracked folder or a JSON sequence, or a raw video (any
+    /// video file or a folder of images; tracked now, or found in the tracking cache). Default:
+    /// the --driver-video, tracked.
     #[arg(long)]
-    pub driver: PathBuf,
+    pub driver: Option<PathBuf>,
     /// Output: .mp4, .gif, or a folder of PNGs.
     #[arg(short, long)]
     pub output: PathBuf,
@@ -56,20 +67,51 @@ pub struct ReenactArgs {
     pub no_watermark: bool,
 }
 
+/// A tracked folder, a `.pkl` or a `.json`: records to drive with. Anything else (a video, a
+/// folder of images, an image) is tracked first.
+fn is_driving_sequence(path: &std::path::Path) -> bool {
+    if path.is_dir() {
+        return tracking::is_tracked_folder(path);
+    }
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    matches!(ext.as_str(), "json" | "pkl" | "pickle")
+}
+
 pub fn run(a: ReenactArgs) -> Result<()> {
     let start_time = Instant::now();
     if a.batch == 0 {
         bail!("--batch must be at least 1");
     }
+    // The source first: a photo without a face fails before the driver is tracked.
+    let source = resolve_source(&a.src)?;
+    let driver_path = match (&a.driver, &a.driver_video) {
+        (Some(d), _) => d.clone(),
+        (None, Some(v)) => v.clone(),
+        (None, None) => bail!(
+            "give --driver (a tracked folder, a JSON sequence, a video or a folder of images) \
+             or --driver-video"
+        ),
+    };
     // The data crate's errors already name the file, frame and field.
-    let driver = DriverSequence::open(&a.driver)?;
+    let driver = if is_driving_sequence(&driver_path) {
+        DriverSequence::open(&driver_path)?
+    } else {
+        let tracked = tracking::tracked_inline(&driver_path, &a.src.flame, "driver", false)?;
+        let mut d = DriverSequence::open(&tracked.dir)?;
+        d.fps = tracked.meta.fps;
+        d
+    };
+    let driver_name = driver_path.display().to_string();
     let total = driver.frames.len();
     if a.start >= total {
         bail!(
             "--start {} is past the end of the driver ({} frames in {})",
             a.start,
             total,
-            a.driver.display()
+            driver_name
         );
     }
     let end = a.max_frames.map_or(total, |m| (a.start + m).min(total));
@@ -79,9 +121,8 @@ pub fn run(a: ReenactArgs) -> Result<()> {
     let show_driver = a.side_by_side || a.driver_video.is_some();
     if show_driver && a.driver_video.is_none() && !driver.has_images() {
         bail!(
-            "--side-by-side needs driver images, and {} has none (give the video with \
-             --driver-video)",
-            a.driver.display()
+            "--side-by-side needs driver images, and {driver_name} has none (give the video \
+             with --driver-video)"
         );
     }
     // Opened before the model loads, so a video that cannot be read fails in a second.
@@ -111,11 +152,11 @@ pub fn run(a: ReenactArgs) -> Result<()> {
     for f in &driver.frames[a.start..end] {
         transforms.push(record_transform(
             &f.record,
-            &format!("driver frame `{}` in {}", f.name, a.driver.display()),
+            &format!("driver frame `{}` in {driver_name}", f.name),
         )?);
     }
     let fps = a.fps.unwrap_or(driver.fps);
-    let mut session = Session::open(&a.src)?;
+    let mut session = Session::open_resolved(&a.src, source)?;
     let size = session.image_size();
     let width = if show_driver { 2 * size } else { size };
     let jobs: Vec<FrameJob> = driver.frames[a.start..end]
@@ -123,7 +164,7 @@ pub fn run(a: ReenactArgs) -> Result<()> {
         .zip(transforms)
         .map(|(f, transform)| FrameJob {
             record: &f.record,
-            name: format!("{} of {}", f.name, a.driver.display()),
+            name: format!("{} of {driver_name}", f.name),
             transform,
         })
         .collect();

@@ -12,8 +12,10 @@ mod cmd_orbit;
 mod cmd_reenact;
 mod cmd_splat;
 mod cmd_synth;
+mod cmd_track;
 mod cmd_train;
 mod cmd_video;
+mod tracking;
 
 use clap::{Parser, Subcommand};
 
@@ -56,6 +58,8 @@ enum Command {
     Video(cmd_video::VideoCmd),
     /// Find faces in a photo: boxes, keypoints, 478 landmarks, and the person matte.
     Face(cmd_face::FaceArgs),
+    /// Track a photo, a video or a folder of images into FLAME + camera records (release layout).
+    Track(cmd_track::TrackArgs),
     /// Benchmarks of the hot paths on this machine.
     #[command(subcommand)]
     Bench(cmd_bench::BenchCmd),
@@ -128,6 +132,7 @@ fn main() {
         Command::ExportPly(args) => cmd_orbit::run_export_ply(args),
         Command::Video(cmd) => cmd_video::run(cmd),
         Command::Face(args) => cmd_face::run(args),
+        Command::Track(args) => cmd_track::run(args),
         Command::Bench(cmd) => cmd_bench::run(cmd),
         Command::SynthData(args) => cmd_synth::run(args),
         Command::Train(args) => cmd_train::run_train(args),

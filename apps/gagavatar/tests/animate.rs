@@ -571,6 +571,11 @@ fn demo_uses_only_shipped_files() {
     let scene = GaussianScene::load(&out.join("avatar.ply")).unwrap();
     assert_eq!(scene.channels, 32);
     assert!(!scene.is_empty());
+    // The real photo's tracking and its overlay.
+    assert!(out.join("astronaut_track/optim.pkl").is_file());
+    assert!(out.join("astronaut_track/img_lmdb").exists());
+    let overlay = image::open(out.join("astronaut_overlay.png")).unwrap();
+    assert_eq!((overlay.width(), overlay.height()), (512, 512));
     let _ = std::fs::remove_dir_all(&out);
 }
 

@@ -13,7 +13,8 @@
 //!   with one shape per video and warm starts);
 //! * [`smooth`]: the release's causal EMA and the default offline (two-sided) smoother;
 //! * [`pipeline`]: `track_photo` / `track_video`, tying the stages together;
-//! * [`output`]: the release layout (`img_lmdb/`, `optim.pkl`, `smoothed.pkl`) plus `track.json`.
+//! * [`output`]: the release layout (`img_lmdb/`, `optim.pkl`, `smoothed.pkl`) plus `track.json`;
+//! * [`overlay`]: a picture of a fit (mesh, detected and fitted landmarks, crop window).
 //!
 //! 2D points everywhere use the continuous pixel convention of PyTorch3D's screen space and
 //! MediaPipe's normalised coordinates times the image size: the image's top-left corner is at
@@ -30,6 +31,7 @@ mod linalg;
 pub mod mapping;
 pub mod observation;
 pub mod output;
+pub mod overlay;
 pub mod pipeline;
 pub mod rig;
 pub mod smooth;

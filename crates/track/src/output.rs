@@ -311,6 +311,23 @@ pub fn write_video(
     video: &TrackedVideo,
     crops: impl IntoIterator<Item = Result<RgbImage>>,
 ) -> Result<()> {
+    let jpegs = crops.into_iter().enumerate().map(|(i, item)| {
+        item.and_then(|img| {
+            check_crop(&img, i)?;
+            encode_jpeg(&img)
+        })
+    });
+    write_video_jpegs(dir, name, video, jpegs)
+}
+
+/// [`write_video`] with the crops already encoded (e.g. by [`encode_jpeg`] on other threads):
+/// one JPEG of a 512x512 crop per frame, in frame order.
+pub fn write_video_jpegs(
+    dir: &Path,
+    name: &str,
+    video: &TrackedVideo,
+    jpegs: impl IntoIterator<Item = Result<Vec<u8>>>,
+) -> Result<()> {
     let name = sanitize_name(name);
     let n = video.frames.len();
     if video.raw_records.len() != n {
@@ -347,17 +364,12 @@ pub fn write_video(
     write_dir(dir, |tmp| {
         let mut failure: Option<TrackError> = None;
         let mut count = 0usize;
-        let mut crops = crops.into_iter();
+        let mut crops = jpegs.into_iter();
         let entries = std::iter::from_fn(|| {
             if failure.is_some() || count >= n {
                 return None;
             }
-            let item = crops.next()?;
-            let encoded = item.and_then(|img| {
-                check_crop(&img, count)?;
-                encode_jpeg(&img)
-            });
-            match encoded {
+            match crops.next()? {
                 Ok(jpeg) => {
                     let key = keys[count].clone().into_bytes();
                     count += 1;

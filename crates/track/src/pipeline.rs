@@ -174,6 +174,51 @@ pub fn track_photo(
     })
 }
 
+/// A video's crop windows, which depend on the landmarks only (not on the fit), so a caller
+/// can crop while [`track_video`] fits.
+#[derive(Debug, Clone, PartialEq)]
+pub struct VideoWindows {
+    /// Per frame, the head box from its landmarks (`None`: no face).
+    pub boxes: Vec<Option<HeadBox>>,
+    /// The boxes smoothed over the clip (missing ones filled).
+    pub smooth_boxes: Vec<HeadBox>,
+    /// The crop window of each frame.
+    pub windows: Vec<CropWindow>,
+}
+
+/// The crop windows [`track_video`] uses for these observations (no face in any frame: the
+/// "no face found in `label`" error).
+pub fn video_windows(
+    obs: &[Observation],
+    opts: &TrackOptions,
+    label: &str,
+) -> Result<VideoWindows> {
+    let boxes: Vec<Option<HeadBox>> = obs
+        .iter()
+        .map(|o| {
+            o.landmarks
+                .as_ref()
+                .map(|lm| opts.framing.head_box(lm))
+                .transpose()
+        })
+        .collect::<Result<_>>()?;
+    if boxes.iter().all(Option::is_none) {
+        return Err(TrackError::NoFace {
+            name: label.to_owned(),
+        });
+    }
+    let smooth_boxes = smooth_head_boxes(&boxes, opts.window_smoothing)?;
+    let windows: Vec<CropWindow> = smooth_boxes
+        .iter()
+        .map(CropWindow::from_head_box)
+        .collect::<Result<_>>()?;
+    Ok(VideoWindows {
+        boxes,
+        smooth_boxes,
+        windows,
+    })
+}
+
 /// Tracks a video's frames (all of them are needed before the first window is final).
 /// `progress(done, total)` is called as frames are fitted. `label` names the video in the "no
 /// face found" error.
@@ -205,25 +250,11 @@ pub fn track_video(
             ),
         ));
     }
-    let boxes: Vec<Option<HeadBox>> = obs
-        .iter()
-        .map(|o| {
-            o.landmarks
-                .as_ref()
-                .map(|lm| opts.framing.head_box(lm))
-                .transpose()
-        })
-        .collect::<Result<_>>()?;
-    if boxes.iter().all(Option::is_none) {
-        return Err(TrackError::NoFace {
-            name: label.to_owned(),
-        });
-    }
-    let smooth_boxes = smooth_head_boxes(&boxes, opts.window_smoothing)?;
-    let windows: Vec<CropWindow> = smooth_boxes
-        .iter()
-        .map(CropWindow::from_head_box)
-        .collect::<Result<_>>()?;
+    let VideoWindows {
+        boxes,
+        smooth_boxes,
+        windows,
+    } = video_windows(&obs, opts, label)?;
     let mut targets = Vec::with_capacity(obs.len());
     let mut detected = Vec::with_capacity(obs.len());
     for (o, w) in obs.iter().zip(&windows) {
