@@ -750,6 +750,10 @@ fn bench_eval(a: EvalBench) -> Result<()> {
         o.metrics.as_secs_f64(),
         o.render.as_secs_f64(),
         cpu * 1e3 / o.scored.max(1) as f64,
+    );
+    Ok(())
+}
+
 /// Frame `i` of `n` of the bench clip: `photo` through a window that zooms between 70% and 90%
 /// of its side and drifts around its centre, resized to 512x512.
 fn bench_clip_frame(photo: &image::RgbImage, i: usize, n: usize) -> image::RgbImage {
