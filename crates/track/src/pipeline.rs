@@ -285,6 +285,11 @@ pub fn track_video(
     })
 }
 
+/// How much worse (RMS pixels at 512) a refit from the smoothed state may fit the smoothed
+/// landmarks than one from the raw state and still be kept: a fraction of a pixel is invisible,
+/// a steadier camera is not.
+const PREFER_SMOOTHED_PX: f64 = 0.25;
+
 /// Makes smoothed states agree with smoothed landmarks. Smoothing each parameter on its own
 /// breaks their agreement: from 70 landmarks a small turn of the camera and a change of the
 /// expression codes look nearly alike, so per-frame fits trade one for the other from frame to
@@ -325,12 +330,24 @@ fn consistent_states(
             }
         }
     }
-    smooth_pts
-        .par_iter()
-        .zip(smoothed.par_iter())
-        .map(|(p, s)| {
-            let t = LandmarkTargets::with_weights(*p, &o.landmark_weights)?;
-            Ok(fit_frame(rig, shape, &t, Some(s), o)?.state)
+    // Warm starts only (a restart from the closed form can land in a distant, degenerate
+    // minimum): from the smoothed state, which keeps the smoothed camera, unless the frame's
+    // own raw state fits the smoothed landmarks clearly better.
+    let warm = FitOptions {
+        restart_rms_px: f64::MAX,
+        ..o.clone()
+    };
+    (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let t = LandmarkTargets::with_weights(smooth_pts[i], &o.landmark_weights)?;
+            let a = fit_frame(rig, shape, &t, Some(&smoothed[i]), &warm)?;
+            let b = fit_frame(rig, shape, &t, Some(&filled[i]), &warm)?;
+            Ok(if a.rms_px <= b.rms_px + PREFER_SMOOTHED_PX {
+                a.state
+            } else {
+                b.state
+            })
         })
         .collect()
 }
