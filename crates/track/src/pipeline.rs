@@ -2,8 +2,9 @@
 //!
 //! Photo: landmarks -> head box -> crop window -> the 70 targets in crop pixels -> photo fit ->
 //! record. Video: head boxes of all frames -> smoothed windows -> targets -> one shape on
-//! keyframes, warm-started frame fits -> gaps filled -> smoothing -> records. The images
-//! themselves are cropped separately ([`crate::crop::crop_image`] with each frame's window), so
+//! keyframes, warm-started frame fits -> gaps filled -> smoothing (the default offline smoother
+//! also refits each frame to its smoothed landmarks, see `consistent_states`) -> records. The
+//! images themselves are cropped separately ([`crate::crop::crop_image`] with each frame's window), so
 //! a caller can decode a video twice instead of holding it in memory.
 
 use gagavatar_data::records::{EXPRESSION_COMPONENTS, SHAPE_COMPONENTS};
