@@ -246,6 +246,8 @@ fn motion_mode(i: usize, p: [f64; 3]) -> [f64; 3] {
 /// over the face (weights `w`), as that motion appears through the basis's own support `s` (1
 /// where the basis may move a vertex): `d - s * M p`, with `p` minimising
 /// `sum_v w_v |d_v - s_v M_v p|^2`.
+// The elimination reads and writes two rows of one matrix by index.
+#[allow(clippy::needless_range_loop)]
 fn remove_motion(d: &mut [[f64; 3]], pts: &[[f64; 3]], w: &[f64], s: &[f64], modes: usize) {
     let mut a = [[0.0f64; 7]; 7];
     let mut b = [0.0f64; 7];

@@ -414,6 +414,8 @@ fn with_eye_landmarks_follow_the_ibug_layout() {
 /// `BasisMotion::RigidFree` changes each identity basis by a rigid motion only (on the head
 /// surface; eyeballs follow their centres), and `AsDrawn` is the plain asset.
 #[test]
+// Gauss-Jordan reads and writes two rows of one matrix by index.
+#[allow(clippy::needless_range_loop)]
 fn rigid_free_bases_differ_by_rigid_motions() {
     use gagavatar_flame::{synthesize_with, BasisMotion};
     let a = synthesize(0);

@@ -28,10 +28,9 @@ fn dist(a: [f64; 2], b: [f64; 2]) -> f64 {
 
 fn second_difference(seq: &[Vec<[f64; 2]>]) -> f64 {
     let (mut sum, mut n) = (0.0, 0);
-    for t in 1..seq.len() - 1 {
-        for k in 0..68 {
-            let d: [f64; 2] =
-                std::array::from_fn(|i| seq[t - 1][k][i] - 2.0 * seq[t][k][i] + seq[t + 1][k][i]);
+    for w in seq.windows(3) {
+        for ((a, b), c) in w[0].iter().zip(&w[1]).zip(&w[2]).take(68) {
+            let d: [f64; 2] = std::array::from_fn(|i| a[i] - 2.0 * b[i] + c[i]);
             sum += (d[0] * d[0] + d[1] * d[1]).sqrt();
             n += 1;
         }
