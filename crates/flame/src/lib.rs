@@ -20,4 +20,4 @@ pub use lbs::{FlameConfig, FlameIdentity, FlameModel, FlameOutput, FlameParams, 
 pub use pth::read_torch_zip;
 pub use record::TrackedFrame;
 pub use rodrigues::rodrigues;
-pub use synth::synthesize;
+pub use synth::{synthesize, synthesize_with, BasisMotion};

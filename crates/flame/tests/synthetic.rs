@@ -410,3 +410,94 @@ fn with_eye_landmarks_follow_the_ibug_layout() {
         f[39][2]
     );
 }
+
+/// `BasisMotion::RigidFree` changes each identity basis by a rigid motion only (on the head
+/// surface; eyeballs follow their centres), and `AsDrawn` is the plain asset.
+#[test]
+// Gauss-Jordan reads and writes two rows of one matrix by index.
+#[allow(clippy::needless_range_loop)]
+fn rigid_free_bases_differ_by_rigid_motions() {
+    use gagavatar_flame::{synthesize_with, BasisMotion};
+    let a = synthesize(0);
+    assert_eq!(synthesize_with(0, BasisMotion::AsDrawn), a);
+    let b = synthesize_with(0, BasisMotion::RigidFree);
+    assert_eq!(b.v_template, a.v_template);
+    let k_total = 400;
+    let head = 4731; // head vertices come first (see synth.rs)
+    let mut changed = 0;
+    for k in [0usize, 1, 7, 50, 299] {
+        // Fit d(v) = t + w x v by least squares over the head's vertices; the residual must be
+        // at float32 rounding of the bases.
+        let mut rows: Vec<([f64; 6], f64)> = Vec::new();
+        let mut max_d: f64 = 0.0;
+        for i in 0..head {
+            let p = v(&a, i as u32);
+            for c in 0..3 {
+                let d = (a.shapedirs[(i * 3 + c) * k_total + k]
+                    - b.shapedirs[(i * 3 + c) * k_total + k]) as f64;
+                max_d = max_d.max(d.abs());
+                let mut m = [0.0; 6];
+                m[c] = 1.0;
+                // (w x p)_c
+                match c {
+                    0 => {
+                        m[4] = p[2];
+                        m[5] = -p[1];
+                    }
+                    1 => {
+                        m[3] = -p[2];
+                        m[5] = p[0];
+                    }
+                    _ => {
+                        m[3] = p[1];
+                        m[4] = -p[0];
+                    }
+                }
+                rows.push((m, d));
+            }
+        }
+        let mut ata = [[0.0f64; 6]; 6];
+        let mut atb = [0.0f64; 6];
+        for (m, d) in &rows {
+            for i in 0..6 {
+                atb[i] += m[i] * d;
+                for j in 0..6 {
+                    ata[i][j] += m[i] * m[j];
+                }
+            }
+        }
+        // Gauss-Jordan on the 6x6 (well conditioned: the head spans all six motions).
+        let mut x = atb;
+        for col in 0..6 {
+            let piv = ata[col][col];
+            for j in 0..6 {
+                ata[col][j] /= piv;
+            }
+            x[col] /= piv;
+            for r in 0..6 {
+                if r != col {
+                    let f = ata[r][col];
+                    for j in 0..6 {
+                        ata[r][j] -= f * ata[col][j];
+                    }
+                    x[r] -= f * x[col];
+                }
+            }
+        }
+        let resid = rows
+            .iter()
+            .map(|(m, d)| (d - (0..6).map(|i| m[i] * x[i]).sum::<f64>()).abs())
+            .fold(0.0, f64::max);
+        assert!(
+            resid < 1e-6,
+            "basis {k}: non-rigid change {resid:e} (change up to {max_d:e})"
+        );
+        if max_d > 1e-5 {
+            changed += 1;
+        }
+    }
+    assert!(
+        changed >= 4,
+        "the rigid parts removed are not visible ({changed} of 5 bases)"
+    );
+}

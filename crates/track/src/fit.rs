@@ -17,8 +17,9 @@
 //!
 //! Start: a scaled-orthographic alignment of the mean face (closed form), a rigid LM, then the
 //! full LM. Video: the shape is solved jointly on a few keyframes, then each frame is fitted
-//! with that shape, warm-started from the previous frame (and restarted from the closed form
-//! when the warm start ends worse than a threshold).
+//! with that shape, warm-started from the previous frame (the first from its nearest
+//! keyframe's joint state; a warm start that ends worse than a threshold is retried from the
+//! nearest keyframe's state and from the closed form, keeping the best).
 
 use rayon::prelude::*;
 
@@ -1077,13 +1078,30 @@ pub fn fit_sequence(
         .par_iter()
         .map(|t| fit_frame_from_scratch(rig, &zero, t, o, o.frame_iterations).map(|f| f.state))
         .collect::<Result<_>>()?;
-    let (shape, _) = fit_shared_shape(rig, &key_targets, &zero, &starts, o)?;
+    let (shape, key_states) = fit_shared_shape(rig, &key_targets, &zero, &starts, o)?;
+    // The keyframes' joint states fit the solved shape; a frame started from scratch with that
+    // shape can settle in a poor minimum (a shape fitted to several views of a real face is far
+    // from the mean face the closed-form start assumes). So the first frame starts from its
+    // nearest keyframe's state, and a frame whose warm start ends poorly is retried from there.
+    let nearest_key = |i: usize| -> &FrameState {
+        let j = (0..keyframes.len())
+            .min_by_key(|&j| keyframes[j].abs_diff(i))
+            .unwrap_or(0);
+        &key_states[j]
+    };
     let mut frames = Vec::with_capacity(targets.len());
     let mut prev: Option<FrameState> = None;
     for (i, t) in targets.iter().enumerate() {
         let fit = match t {
             Some(t) => {
-                let f = fit_frame(rig, &shape, t, prev.as_ref(), o)?;
+                let key = nearest_key(i);
+                let mut f = fit_frame(rig, &shape, t, Some(prev.as_ref().unwrap_or(key)), o)?;
+                if f.rms_px > o.restart_rms_px && prev.is_some() {
+                    let g = fit_frame(rig, &shape, t, Some(key), o)?;
+                    if g.rms_px < f.rms_px {
+                        f = g;
+                    }
+                }
                 prev = Some(f.state.clone());
                 Some(f)
             }

@@ -3,7 +3,7 @@
 
 #![allow(dead_code)]
 
-use gagavatar_flame::synthesize;
+use gagavatar_flame::{synthesize, synthesize_with, BasisMotion};
 use gagavatar_synthdata::sample::{sample_frame, sample_shape, Rng, SampleConfig};
 use gagavatar_track::camera::{rotation_angle_between, CameraPose};
 use gagavatar_track::fit::{reproject, FrameState, LandmarkTargets, LandmarkWeights};
@@ -13,6 +13,12 @@ pub const SEED: u64 = 11;
 
 pub fn rig() -> LandmarkRig {
     LandmarkRig::for_tracking(&synthesize(0)).unwrap()
+}
+
+/// The rig of the synthetic asset with blendshapes free of whole-face motion (as real FLAME
+/// bases nearly are; see `BasisMotion`).
+pub fn rig_with(motion: BasisMotion) -> LandmarkRig {
+    LandmarkRig::for_tracking(&synthesize_with(0, motion)).unwrap()
 }
 
 /// RMS distance of the neutral head's 68 landmarks from their centroid: the head's size, which
