@@ -85,6 +85,11 @@ pub struct FitOptions {
     pub eye_coupling: f64,
     /// Largest plausible |eye rotation| per component (radians).
     pub eye_range: f64,
+    /// Plausible camera distance (the translation's z). The 512 crop frames every head alike,
+    /// so the release's tracked cameras sit near z = 9 (its start is 9.01); a photo fit free
+    /// to move closer trades distance for shape and perspective and lands at z ~ 1 with a
+    /// distorted head, though its landmarks match.
+    pub distance_range: (f64, f64),
     /// Weight of the hinge penalties.
     pub bound_weight: f64,
     pub landmark_weights: LandmarkWeights,
@@ -104,13 +109,14 @@ pub struct FitOptions {
 impl Default for FitOptions {
     fn default() -> Self {
         Self {
-            shape_prior: 4.0,
+            shape_prior: 40.0,
             expression_prior: 2.0,
             jaw_prior: [1.0, 400.0, 400.0],
             jaw_opening_range: (-0.05, 0.6),
             eye_prior: [50.0, 50.0, 4000.0],
             eye_coupling: 200.0,
             eye_range: 0.6,
+            distance_range: (7.0, 12.0),
             bound_weight: 1e5,
             landmark_weights: LandmarkWeights::default(),
             huber_px: Some(8.0),
@@ -156,6 +162,13 @@ impl FitOptions {
             return Err(input(
                 "fit options",
                 format!("jaw_opening_range ({lo}, {hi}) is not an interval"),
+            ));
+        }
+        let (zlo, zhi) = self.distance_range;
+        if !(zlo.is_finite() && zhi.is_finite() && 0.0 < zlo && zlo < zhi) {
+            return Err(input(
+                "fit options",
+                format!("distance_range ({zlo}, {zhi}) is not a positive interval"),
             ));
         }
         if let Some(h) = self.huber_px {
@@ -439,6 +452,14 @@ pub(crate) fn frame_residuals(
             res.sparse.push(col.map(|c| (c, s)).into_iter().collect());
         }
     };
+    let (zlo, zhi) = o.distance_range;
+    let hz = hinge(state.camera.translation[2], zlo, zhi);
+    prior(
+        hz,
+        o.bound_weight,
+        layout.filter(|_| hz != 0.0).map(|l| l.trans() + 2),
+        &mut res,
+    );
     let nonrigid = layout.is_none_or(|l| l.nonrigid);
     if nonrigid {
         let l = layout;

@@ -105,6 +105,14 @@ fn targets_and_options_are_validated() {
             ..FitOptions::default()
         },
         FitOptions {
+            distance_range: (0.0, 12.0),
+            ..FitOptions::default()
+        },
+        FitOptions {
+            distance_range: (12.0, 7.0),
+            ..FitOptions::default()
+        },
+        FitOptions {
             huber_px: Some(0.0),
             ..FitOptions::default()
         },

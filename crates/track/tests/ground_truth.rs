@@ -35,11 +35,18 @@ const PHOTO_TRANS_TOL_PCT: f64 = 12.0;
 
 /// The synthetic contour is exactly FLAME's static contour, so it is trusted fully here (the
 /// default halves it for real detectors, whose jaw line is another curve).
+/// Exact landmarks also deserve a weaker shape prior than the default, which is set for real
+/// detectors (their noise, and faces far from the mean shape that would otherwise be fitted by
+/// distorting the head).
 fn exact_options() -> FitOptions {
     let mut o = FitOptions::default();
     o.landmark_weights.contour = 1.0;
+    o.shape_prior = EXACT_SHAPE_PRIOR;
     o
 }
+
+/// Squared pixels per squared unit of shape code: a code of 1 costs a 2 px landmark error.
+const EXACT_SHAPE_PRIOR: f64 = 4.0;
 
 fn weights() -> LandmarkWeights {
     exact_options().landmark_weights
