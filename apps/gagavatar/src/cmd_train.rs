@@ -409,7 +409,7 @@ pub fn run_eval(a: EvalArgs) -> Result<()> {
     if let Some(path) = &a.json {
         let mut text = serde_json::to_string_pretty(&report.to_json())?;
         text.push('\n');
-        gagavatar_splat::scene::write_atomic(path, text.as_bytes())?;
+        gagavatar_formats::atomic::write_atomic(path, text.as_bytes())?;
         eprintln!("wrote {}", path.display());
     }
     if let Some(path) = &a.grid {

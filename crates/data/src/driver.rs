@@ -18,9 +18,9 @@ use serde_json::Value;
 
 use crate::error::{io_err, DataError, Result};
 use crate::images::{decode_image, read_image_file};
-use crate::lmdb::LmdbReader;
 use crate::names::frame_name_cmp;
 use crate::records::read_records;
+use gagavatar_formats::lmdb::LmdbReader;
 
 /// The release's video frame rate, used for pickled sequences (which carry none).
 pub const DEFAULT_FPS: f64 = 25.0;
@@ -279,7 +279,7 @@ fn ordered_frames(records: BTreeMap<String, TrackedFrame>) -> Vec<DriverFrame> {
 pub(crate) fn open_optional_lmdb(dir: &Path) -> Result<Option<LmdbReader>> {
     let p = dir.join("img_lmdb");
     if p.exists() {
-        LmdbReader::open(&p).map(Some)
+        Ok(Some(LmdbReader::open(&p)?))
     } else {
         Ok(None)
     }
@@ -296,7 +296,7 @@ pub fn read_source_record(path: &Path, key: Option<&str>) -> Result<TrackedFrame
         .is_some_and(|e| e.eq_ignore_ascii_case("json"));
     if is_json && !path.is_dir() {
         return TrackedFrame::from_json_file(path).map_err(|e| match e {
-            FlameError::Io { source, .. } => io_err(path, "cannot read")(source),
+            FlameError::Io { err, .. } => io_err(path, "cannot read")(err),
             other => flame_record_error(path, "(source record)".into(), other),
         });
     }

@@ -18,10 +18,10 @@ use std::path::Path;
 use gagavatar_flame::TrackedFrame;
 
 use crate::error::{DataError, Result};
-use crate::fsutil::write_atomic;
 use crate::names::frame_name_cmp;
-use crate::pickle_out::to_pickle;
-use crate::pyobj::{read_pickle, ArrayData, DictKey, NdArray, PyValue};
+use gagavatar_formats::atomic::write_atomic;
+use gagavatar_formats::numpy::{ArrayData, NdArray};
+use gagavatar_formats::pickle::{read_pickle, to_pickle, DictKey, PyValue};
 
 /// Component counts of the release's codes.
 pub const SHAPE_COMPONENTS: usize = 300;
@@ -192,7 +192,7 @@ fn nested_numbers(v: &PyValue) -> Option<(Vec<usize>, Vec<f64>)> {
 /// Writes records as the release's pickle (protocol 4, float32 numpy arrays), atomically.
 pub fn write_records(path: &Path, records: &BTreeMap<String, TrackedFrame>) -> Result<()> {
     let bytes = records_to_pickle(path, records)?;
-    write_atomic(path, &bytes)
+    Ok(write_atomic(path, &bytes)?)
 }
 
 /// The pickle bytes `write_records` writes (`path` only names the target in errors).

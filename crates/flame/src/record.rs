@@ -120,9 +120,9 @@ impl TrackedFrame {
     }
 
     pub fn from_json_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|source| FlameError::Io {
+        let text = std::fs::read_to_string(path).map_err(|err| FlameError::Io {
             path: path.to_owned(),
-            source,
+            err,
         })?;
         Self::from_json_str(&text)
     }

@@ -684,16 +684,16 @@ impl Run {
     fn write_config(&self) -> RunResult<()> {
         let path = self.dir.join(CONFIG_FILE);
         let text = self.state.cfg.to_toml_string()?;
-        gagavatar_splat::scene::write_atomic(&path, text.as_bytes())
-            .map_err(|e| ckpt_err(&path, e.to_string()))
+        gagavatar_formats::atomic::write_atomic(&path, text.as_bytes())
+            .map_err(|e| ckpt_err(&path, e.detail()))
     }
 
     fn write_metrics(&self) -> RunResult<()> {
         let path = self.dir.join(METRICS_FILE);
         let mut text = self.metrics.join("\n");
         text.push('\n');
-        gagavatar_splat::scene::write_atomic(&path, text.as_bytes())
-            .map_err(|e| ckpt_err(&path, e.to_string()))
+        gagavatar_formats::atomic::write_atomic(&path, text.as_bytes())
+            .map_err(|e| ckpt_err(&path, e.detail()))
     }
 
     /// Writes `checkpoint.safetensors` and `weights.safetensors` for the current step.

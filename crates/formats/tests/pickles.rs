@@ -4,7 +4,8 @@
 mod common;
 
 use common::data;
-use gagavatar_data::pyobj::{parse_pickle, read_pickle, ArrayData, DictKey, PyValue};
+use gagavatar_formats::numpy::ArrayData;
+use gagavatar_formats::pickle::{parse_pickle, read_pickle, DictKey, PyValue};
 use serde_json::{json, Value as Json};
 
 /// The canonical JSON of `tracked_data_fixtures.py::canon`.
@@ -150,7 +151,11 @@ fn xorshift(state: &mut u64) -> u64 {
 
 #[test]
 fn truncated_and_corrupted_pickles_never_panic() {
-    for name in ["records_p4.pkl", "numpy_misc_p2.pkl", "numpy_misc_p5.pkl"] {
+    for name in [
+        "numpy_misc_p4.pkl",
+        "numpy_misc_p2.pkl",
+        "numpy_misc_p5.pkl",
+    ] {
         let bytes = std::fs::read(data(name)).unwrap();
         for cut in 0..bytes.len() {
             assert!(
@@ -176,8 +181,8 @@ fn truncated_and_corrupted_pickles_never_panic() {
 
 #[test]
 fn data_length_must_match_the_shape() {
-    use gagavatar_data::pickle_out::to_pickle;
-    use gagavatar_data::pyobj::NdArray;
+    use gagavatar_formats::numpy::NdArray;
+    use gagavatar_formats::pickle::to_pickle;
     let v = PyValue::Array(NdArray {
         shape: vec![2, 2],
         data: ArrayData::F32(vec![1.0, 2.0, 3.0, 4.0]),

@@ -1,7 +1,7 @@
 //! Reading torch zip checkpoints (`torch.save` since PyTorch 1.6) whose pickle is a tree of
 //! containers with tensor leaves, flattened to `a.b.c` keys.
 //!
-//! The pickle is parsed by our own data-only interpreter (`crate::pickle`): classes are recorded
+//! The pickle is parsed by our own data-only interpreter ([`crate::pickle::read`]): classes are recorded
 //! by name, never imported or called, so nothing in the file is executed. That also means
 //! objects of classes we have never heard of (a release's own config class, `EasyDict`, ...) are
 //! kept as data instead of stopping the parse, and the walk below can look inside them.
@@ -27,14 +27,12 @@
 //! "missing key"; its pickle `Stack` stops at the first object of an unknown class.
 
 use std::collections::{BTreeMap, HashMap, HashSet};
-use std::io::Read;
+use std::io::{Read, Seek};
 use std::path::Path;
 
-use candle_core::DType;
-
-use crate::asset::{RawTensor, TensorMap};
-use crate::error::{FlameError, Result};
-use crate::pickle::{self, Id, Pickle, Value};
+use crate::error::{label_of, FormatError, Result};
+use crate::pickle::read::{self as pickle, Id, Pickle, Value};
+use crate::tensor::{Dtype, RawTensor, TensorBytes, TensorMap};
 
 /// Largest pickle accepted. The FLAME pickle is a few kilobytes and a state dict's takes some
 /// tens of bytes per tensor; a limit keeps a hostile file from making the parser build an
@@ -50,33 +48,41 @@ const MAX_VISITS: usize = 1 << 22;
 /// `_rebuild_parameter` / `_rebuild_from_type_v2` wrappers followed around one tensor.
 const MAX_REBUILD_NESTING: usize = 8;
 
-fn archive_err(path: &Path, reason: impl std::fmt::Display) -> FlameError {
-    FlameError::Archive {
-        path: path.to_owned(),
+fn archive_err(label: &str, reason: impl std::fmt::Display) -> FormatError {
+    FormatError::TorchZip {
+        label: label.to_owned(),
         reason: reason.to_string(),
     }
 }
 
-fn pickle_err(path: &Path, reason: impl std::fmt::Display) -> FlameError {
-    FlameError::Pickle {
-        path: path.to_owned(),
-        reason: reason.to_string(),
+fn pickle_err(label: &str, reason: impl std::fmt::Display) -> FormatError {
+    FormatError::Pickle {
+        label: label.to_owned(),
+        reason: format!("unsupported pickle content: {reason}"),
     }
 }
 
-/// Storage class name -> (candle dtype, bytes per element).
-fn storage_dtype(class_name: &str) -> Option<(DType, usize)> {
+fn tensor_err(label: &str, key: &str, reason: impl Into<String>) -> FormatError {
+    FormatError::Tensor {
+        label: label.to_owned(),
+        key: key.to_owned(),
+        reason: reason.into(),
+    }
+}
+
+/// Storage class name -> element type.
+fn storage_dtype(class_name: &str) -> Option<Dtype> {
     Some(match class_name {
-        "FloatStorage" => (DType::F32, 4),
-        "DoubleStorage" => (DType::F64, 8),
-        "HalfStorage" => (DType::F16, 2),
-        "BFloat16Storage" => (DType::BF16, 2),
-        "LongStorage" => (DType::I64, 8),
-        "IntStorage" => (DType::I32, 4),
-        "ShortStorage" => (DType::I16, 2),
-        "ByteStorage" => (DType::U8, 1),
+        "FloatStorage" => Dtype::F32,
+        "DoubleStorage" => Dtype::F64,
+        "HalfStorage" => Dtype::F16,
+        "BFloat16Storage" => Dtype::BF16,
+        "LongStorage" => Dtype::I64,
+        "IntStorage" => Dtype::I32,
+        "ShortStorage" => Dtype::I16,
+        "ByteStorage" => Dtype::U8,
         // torch stores bools as one byte, 0 or 1.
-        "BoolStorage" => (DType::U8, 1),
+        "BoolStorage" => Dtype::U8,
         _ => return None,
     })
 }
@@ -341,45 +347,48 @@ fn indexed_children(elems: &[Id], out: &mut Vec<(String, Id)>) {
 }
 
 /// A tensor read from the archive: its bytes in row-major order, in the file's dtype.
-struct RawEntry {
-    key: String,
-    dtype: DType,
-    shape: Vec<usize>,
-    bytes: Vec<u8>,
+#[derive(Debug, Clone, PartialEq)]
+pub struct TorchEntry {
+    /// The dotted key (`model.encoder.weight`, `meta_cfg.sub.w`, ...).
+    pub key: String,
+    pub tensor: TensorBytes,
 }
 
-/// Loads every tensor of a torch zip checkpoint under its dotted key.
+/// Loads every tensor of a torch zip checkpoint under its dotted key, floats as f32 and
+/// integers as i64.
 pub fn read_torch_zip(path: &Path) -> Result<TensorMap> {
+    let file = std::fs::File::open(path).map_err(FormatError::io(path, "cannot read"))?;
+    read_torch_zip_from(std::io::BufReader::new(file), &label_of(path))
+}
+
+/// [`read_torch_zip`] of bytes in memory; `label` names them in errors.
+pub fn read_torch_zip_bytes(bytes: &[u8], label: &str) -> Result<TensorMap> {
+    read_torch_zip_from(std::io::Cursor::new(bytes), label)
+}
+
+fn read_torch_zip_from(reader: impl Read + Seek, label: &str) -> Result<TensorMap> {
     let mut out = TensorMap::new();
-    for_each_torch_entry(path, |e| {
-        let raw = RawTensor::from_bytes(&e.key, e.dtype, e.shape, &e.bytes)?;
+    for_each_tensor(reader, label, |e| {
+        let raw = RawTensor::from_bytes(e.tensor.dtype, e.tensor.shape, &e.tensor.bytes)
+            .map_err(|reason| tensor_err(label, &e.key, reason))?;
         out.insert(e.key, raw);
         Ok(())
     })?;
     Ok(out)
 }
 
-#[cfg(test)]
-fn read_torch_zip_raw(path: &Path) -> Result<Vec<RawEntry>> {
-    let mut out = Vec::new();
-    for_each_torch_entry(path, |e| {
-        out.push(e);
-        Ok(())
-    })?;
-    Ok(out)
-}
-
-/// Hands each tensor of a torch zip to `f` as soon as it is read, and frees each storage after
-/// its last view: peak memory is the converted tensors plus one storage, not the whole file
-/// twice over (a release-size checkpoint peaked at 1.3 GiB for 0.68 GiB of weights).
-fn for_each_torch_entry(path: &Path, mut f: impl FnMut(RawEntry) -> Result<()>) -> Result<()> {
-    let file = std::fs::File::open(path).map_err(|source| FlameError::Io {
-        path: path.to_owned(),
-        source,
-    })?;
-    let mut zip = zip::ZipArchive::new(std::io::BufReader::new(file)).map_err(|e| {
+/// Hands each tensor of a torch zip to `f` as soon as it is read, in key order, and frees each
+/// storage after its last view: peak memory is the converted tensors plus one storage, not the
+/// whole file twice over (a release-size checkpoint peaked at 1.3 GiB for 0.68 GiB of weights).
+/// `label` names the archive in errors.
+pub fn for_each_tensor(
+    reader: impl Read + Seek,
+    label: &str,
+    mut f: impl FnMut(TorchEntry) -> Result<()>,
+) -> Result<()> {
+    let mut zip = zip::ZipArchive::new(reader).map_err(|e| {
         archive_err(
-            path,
+            label,
             format!(
                 "{e} (legacy non-zip torch files are not supported; re-save with torch >= 1.6)"
             ),
@@ -387,28 +396,29 @@ fn for_each_torch_entry(path: &Path, mut f: impl FnMut(RawEntry) -> Result<()>) 
     })?;
     let mut pkl_names: Vec<String> = Vec::new();
     for name in zip.file_names() {
-        let name = name.map_err(|e| archive_err(path, e))?;
+        let name = name.map_err(|e| archive_err(label, e))?;
         if name.ends_with("data.pkl") {
             pkl_names.push(name.into_owned());
         }
     }
     let pkl_name = match pkl_names.as_slice() {
         [one] => one.clone(),
-        [] => return Err(archive_err(path, "no data.pkl entry")),
-        _ => return Err(archive_err(path, "several data.pkl entries")),
+        [] => return Err(archive_err(label, "no data.pkl entry")),
+        _ => return Err(archive_err(label, "several data.pkl entries")),
     };
     let prefix = pkl_name.trim_end_matches("data.pkl").to_owned();
 
     // Storages are raw machine words; torch writes the byte order beside them.
     if let Ok(entry) = zip.by_name(&format!("{prefix}byteorder")) {
-        let mut order = String::new();
+        let mut order = Vec::new();
         entry
             .take(16)
-            .read_to_string(&mut order)
-            .map_err(|e| archive_err(path, format!("reading byteorder: {e}")))?;
+            .read_to_end(&mut order)
+            .map_err(|e| archive_err(label, format!("reading byteorder: {e}")))?;
+        let order = String::from_utf8_lossy(&order);
         if order.trim() != "little" {
             return Err(archive_err(
-                path,
+                label,
                 format!(
                     "storages are {:?}-endian; only little-endian is supported",
                     order.trim()
@@ -418,16 +428,16 @@ fn for_each_torch_entry(path: &Path, mut f: impl FnMut(RawEntry) -> Result<()>) 
     }
 
     let parsed = {
-        let entry = zip.by_name(&pkl_name).map_err(|e| archive_err(path, e))?;
+        let entry = zip.by_name(&pkl_name).map_err(|e| archive_err(label, e))?;
         let mut bytes = Vec::new();
         entry
             .take(MAX_PICKLE_BYTES + 1)
             .read_to_end(&mut bytes)
-            .map_err(|e| archive_err(path, format!("reading {pkl_name}: {e}")))?;
+            .map_err(|e| archive_err(label, format!("reading {pkl_name}: {e}")))?;
         if bytes.len() as u64 > MAX_PICKLE_BYTES {
-            return Err(pickle_err(path, "data.pkl larger than 64 MiB"));
+            return Err(pickle_err(label, "data.pkl larger than 64 MiB"));
         }
-        pickle::parse(&bytes).map_err(|e| pickle_err(path, format!("{pkl_name} {e}")))?
+        pickle::parse(&bytes).map_err(|e| pickle_err(label, format!("{pkl_name} {e}")))?
     };
 
     let mut walk = Walk {
@@ -437,7 +447,7 @@ fn for_each_torch_entry(path: &Path, mut f: impl FnMut(RawEntry) -> Result<()>) 
         visits: 0,
     };
     walk.walk(parsed.root(), "", 0)
-        .map_err(|e| pickle_err(path, e))?;
+        .map_err(|e| pickle_err(label, e))?;
 
     // Storages are read once each: several tensors may be views of one storage.
     let mut storages: HashMap<String, Vec<u8>> = HashMap::new();
@@ -446,31 +456,38 @@ fn for_each_torch_entry(path: &Path, mut f: impl FnMut(RawEntry) -> Result<()>) 
         *views_left.entry(t.storage_key.clone()).or_default() += 1;
     }
     for (key, t) in walk.out {
-        let (dtype, elem) = storage_dtype(&t.class_name).ok_or_else(|| FlameError::DType {
-            key: key.clone(),
-            expected: "a float, integer or bool storage",
-            found: t.class_name.clone(),
+        let dtype = storage_dtype(&t.class_name).ok_or_else(|| {
+            tensor_err(
+                label,
+                &key,
+                format!(
+                    "storage type {}; a float, integer or bool storage is needed",
+                    t.class_name
+                ),
+            )
         })?;
+        let elem = dtype.size();
         if t.storage_numel > MAX_TENSOR_ELEMENTS {
-            return Err(FlameError::Invalid {
-                key,
-                reason: format!("storage of {} elements is too large", t.storage_numel),
-            });
+            return Err(tensor_err(
+                label,
+                &key,
+                format!("storage of {} elements is too large", t.storage_numel),
+            ));
         }
         if !storages.contains_key(&t.storage_key) {
             let name = format!("{prefix}data/{}", t.storage_key);
             let want = t.storage_numel * elem;
             let entry = zip
                 .by_name(&name)
-                .map_err(|e| archive_err(path, format!("{name}: {e}")))?;
+                .map_err(|e| archive_err(label, format!("{name}: {e}")))?;
             let mut bytes = Vec::with_capacity(want.min(1 << 26));
             entry
                 .take(want as u64)
                 .read_to_end(&mut bytes)
-                .map_err(|e| archive_err(path, format!("reading {name}: {e}")))?;
+                .map_err(|e| archive_err(label, format!("reading {name}: {e}")))?;
             if bytes.len() != want {
                 return Err(archive_err(
-                    path,
+                    label,
                     format!(
                         "{name}: {} bytes, expected {want} (truncated file?)",
                         bytes.len()
@@ -480,21 +497,20 @@ fn for_each_torch_entry(path: &Path, mut f: impl FnMut(RawEntry) -> Result<()>) 
             storages.insert(t.storage_key.clone(), bytes);
         }
         let storage = &storages[&t.storage_key];
-        let bytes = gather(storage, elem, &t).map_err(|reason| FlameError::Invalid {
-            key: key.clone(),
-            reason,
-        })?;
+        let bytes = gather(storage, elem, &t).map_err(|reason| tensor_err(label, &key, reason))?;
         if let Some(n) = views_left.get_mut(&t.storage_key) {
             *n -= 1;
             if *n == 0 {
                 storages.remove(&t.storage_key);
             }
         }
-        f(RawEntry {
+        f(TorchEntry {
             key,
-            dtype,
-            shape: t.size,
-            bytes,
+            tensor: TensorBytes {
+                dtype,
+                shape: t.size,
+                bytes,
+            },
         })?;
     }
     Ok(())
@@ -565,7 +581,13 @@ mod tests {
             ("pickle_p2.pt", &expected),
             ("pickle_p4.pt", &expected),
         ] {
-            let raw = read_torch_zip_raw(&golden(file)).unwrap();
+            let bytes = std::fs::read(golden(file)).unwrap();
+            let mut raw = Vec::new();
+            for_each_tensor(std::io::Cursor::new(&bytes), file, |e| {
+                raw.push(e);
+                Ok(())
+            })
+            .unwrap();
             let keys: Vec<&str> = raw.iter().map(|e| e.key.as_str()).collect();
             assert_eq!(
                 raw.len(),
@@ -577,29 +599,30 @@ mod tests {
                 let want = expected
                     .tensor(&e.key)
                     .unwrap_or_else(|_| panic!("{file}: unexpected key {}", e.key));
-                assert_eq!(e.shape, want.shape(), "{file}: {}", e.key);
+                let t = &e.tensor;
+                assert_eq!(t.shape, want.shape(), "{file}: {}", e.key);
                 // Bool tensors are read as their u8 bytes; everything else keeps its dtype.
                 let want_dtype = match want.dtype() {
-                    safetensors::Dtype::F64 => DType::F64,
-                    safetensors::Dtype::F32 => DType::F32,
-                    safetensors::Dtype::F16 => DType::F16,
-                    safetensors::Dtype::BF16 => DType::BF16,
-                    safetensors::Dtype::I64 => DType::I64,
-                    safetensors::Dtype::I32 => DType::I32,
-                    safetensors::Dtype::U8 | safetensors::Dtype::BOOL => DType::U8,
+                    safetensors::Dtype::F64 => Dtype::F64,
+                    safetensors::Dtype::F32 => Dtype::F32,
+                    safetensors::Dtype::F16 => Dtype::F16,
+                    safetensors::Dtype::BF16 => Dtype::BF16,
+                    safetensors::Dtype::I64 => Dtype::I64,
+                    safetensors::Dtype::I32 => Dtype::I32,
+                    safetensors::Dtype::U8 | safetensors::Dtype::BOOL => Dtype::U8,
                     other => panic!("{}: fixture dtype {other:?}", e.key),
                 };
-                assert_eq!(e.dtype, want_dtype, "{file}: {}", e.key);
-                if let Some(i) = e.bytes.iter().zip(want.data()).position(|(a, b)| a != b) {
+                assert_eq!(t.dtype, want_dtype, "{file}: {}", e.key);
+                if let Some(i) = t.bytes.iter().zip(want.data()).position(|(a, b)| a != b) {
                     panic!(
                         "{file}: {} differs at byte {i}: expected {}, actual {}",
                         e.key,
                         want.data()[i],
-                        e.bytes[i]
+                        t.bytes[i]
                     );
                 }
-                assert_eq!(e.bytes.len(), want.data().len(), "{file}: {}", e.key);
-                n_f64 += usize::from(e.dtype == DType::F64);
+                assert_eq!(t.bytes.len(), want.data().len(), "{file}: {}", e.key);
+                n_f64 += usize::from(t.dtype == Dtype::F64);
             }
             assert_eq!(n_f64, 5, "{file}: the five float64 views");
         }

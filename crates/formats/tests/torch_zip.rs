@@ -2,34 +2,89 @@
 //! dtype we read, against the values torch wrote (fixtures of
 //! `tools/reference/pickle_fixtures.py`).
 
-mod common;
+use std::path::PathBuf;
 
-use candle_core::{DType, Device, Tensor};
-use common::golden_dir;
-use gagavatar_flame::asset::{read_tensor_file, RawData};
-use gagavatar_flame::FlameError;
+use gagavatar_formats::tensor::{RawData, TensorMap};
+use gagavatar_formats::torch_zip::read_torch_zip;
+use gagavatar_formats::FormatError;
+
+fn golden_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/golden")
+}
+
+fn read_tensor_file(path: &std::path::Path) -> Result<TensorMap, FormatError> {
+    read_torch_zip(path)
+}
+
+/// A golden safetensors file: key -> (shape, dtype name, values as f64).
+fn load_golden(name: &str) -> Vec<(String, Vec<usize>, String, Vec<f64>)> {
+    let bytes = std::fs::read(golden_dir().join(name)).unwrap();
+    let st = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let mut out = Vec::new();
+    for (k, v) in st.tensors() {
+        use safetensors::Dtype as S;
+        let d = v.data();
+        let vals: Vec<f64> = match v.dtype() {
+            S::F64 => d
+                .chunks_exact(8)
+                .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+                .collect(),
+            S::F32 => d
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes(c.try_into().unwrap()) as f64)
+                .collect(),
+            S::F16 => d
+                .chunks_exact(2)
+                .map(|c| gagavatar_formats::numpy::f16_to_f64(u16::from_le_bytes([c[0], c[1]])))
+                .collect(),
+            S::BF16 => d
+                .chunks_exact(2)
+                .map(|c| f32::from_bits(u32::from(u16::from_le_bytes([c[0], c[1]])) << 16) as f64)
+                .collect(),
+            S::I64 => d
+                .chunks_exact(8)
+                .map(|c| i64::from_le_bytes(c.try_into().unwrap()) as f64)
+                .collect(),
+            S::I32 => d
+                .chunks_exact(4)
+                .map(|c| i32::from_le_bytes(c.try_into().unwrap()) as f64)
+                .collect(),
+            S::I16 => d
+                .chunks_exact(2)
+                .map(|c| i16::from_le_bytes([c[0], c[1]]) as f64)
+                .collect(),
+            S::U8 | S::BOOL => d.iter().map(|&b| b as f64).collect(),
+            other => panic!("{k}: fixture dtype {other:?}"),
+        };
+        // torch bools are read as their bytes.
+        let dtype = match v.dtype() {
+            S::BOOL => "U8".to_string(),
+            other => format!("{other:?}"),
+        };
+        out.push((k, v.shape().to_vec(), dtype, vals));
+    }
+    out
+}
 
 /// Compares a checkpoint with what the reader must return for it, by flattened key.
 fn check_file(name: &str, expected: &str) {
     let got = read_tensor_file(&golden_dir().join(name)).unwrap_or_else(|e| panic!("{name}: {e}"));
-    let want = common::load_golden(expected);
-    let mut want_keys: Vec<&String> = want.keys().collect();
+    let want = load_golden(expected);
+    let mut want_keys: Vec<&String> = want.iter().map(|w| &w.0).collect();
     want_keys.sort();
     let got_keys: Vec<&String> = got.keys().collect();
     assert_eq!(got_keys, want_keys, "{name}: key set");
-    for (key, w) in &want {
+    for (key, shape, dtype, e) in &want {
         let g = &got[key];
-        assert_eq!(g.shape, w.dims(), "{name}: {key} shape");
-        let file_dtype = format!("{:?}", w.dtype());
-        assert_eq!(g.file_dtype, file_dtype, "{name}: {key} dtype");
-        let w = w.flatten_all().unwrap();
+        assert_eq!(&g.shape, shape, "{name}: {key} shape");
+        assert_eq!(&g.file_dtype, dtype, "{name}: {key} dtype");
         match &g.data {
             // The reader hands out floats as f32; the expected value is torch's number rounded
             // the same way (exact for f16 / bf16 / f32, the nearest f32 for f64).
             RawData::Float(v) => {
-                let e = w.to_dtype(DType::F32).unwrap().to_vec1::<f32>().unwrap();
                 assert_eq!(v.len(), e.len(), "{name}: {key} length");
-                for (i, (a, b)) in v.iter().zip(&e).enumerate() {
+                for (i, (a, b)) in v.iter().zip(e).enumerate() {
+                    let b = *b as f32;
                     assert!(
                         a.to_bits() == b.to_bits(),
                         "{name}: {key}[{i}]: expected {b}, actual {a}"
@@ -37,10 +92,12 @@ fn check_file(name: &str, expected: &str) {
                 }
             }
             RawData::Int(v) => {
-                let e = w.to_dtype(DType::I64).unwrap().to_vec1::<i64>().unwrap();
                 assert_eq!(v.len(), e.len(), "{name}: {key} length");
-                for (i, (a, b)) in v.iter().zip(&e).enumerate() {
-                    assert_eq!(a, b, "{name}: {key}[{i}]: expected {b}, actual {a}");
+                for (i, (a, b)) in v.iter().zip(e).enumerate() {
+                    assert_eq!(
+                        *a as f64, *b,
+                        "{name}: {key}[{i}]: expected {b}, actual {a}"
+                    );
                 }
             }
         }
@@ -106,7 +163,7 @@ fn truncated_and_garbled_pickles_are_pickle_errors() {
         ("pickle_garbled.pt", "unknown opcode 0xff"),
     ] {
         match read_tensor_file(&golden_dir().join(name)) {
-            Err(e @ FlameError::Pickle { .. }) => {
+            Err(e @ FormatError::Pickle { .. }) => {
                 assert!(e.to_string().contains(needle), "{name}: {e}")
             }
             Err(e) => panic!("{name}: expected a pickle error, got {e}"),
@@ -116,21 +173,18 @@ fn truncated_and_garbled_pickles_are_pickle_errors() {
 }
 
 #[test]
-fn loaded_tensors_feed_candle() {
-    // The reader's output is usable as-is: the float64 transposed view round-trips.
+fn transposed_views_are_gathered_in_row_major_order() {
+    // model.views.transposed is base.view(6, 8).t(): element [i][j] is base[j * 8 + i].
     let got = read_tensor_file(&golden_dir().join("pickle_p2.pt")).unwrap();
     let t = &got["model.views.transposed"];
     let RawData::Float(v) = &t.data else {
         panic!("float tensor expected")
     };
-    let x = Tensor::from_vec(v.clone(), t.shape.as_slice(), &Device::Cpu).unwrap();
-    let back = x
-        .t()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1::<f32>()
-        .unwrap();
-    let base: Vec<f32> = (0..48).map(|i| (i as f64 * 0.1 - 1.3) as f32).collect();
-    assert_eq!(back, base);
+    assert_eq!(t.shape, [8, 6]);
+    let base = |i: usize| (i as f64 * 0.1 - 1.3) as f32;
+    for i in 0..8 {
+        for j in 0..6 {
+            assert_eq!(v[i * 6 + j], base(j * 8 + i), "[{i}][{j}]");
+        }
+    }
 }

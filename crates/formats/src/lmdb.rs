@@ -30,8 +30,12 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::error::{io_err, DataError, Result};
-use crate::fsutil::{replace_dir, temp_sibling};
+use crate::atomic::{replace_dir, temp_sibling};
+use crate::error::{FormatError, Result};
+
+fn io_err(path: &Path, what: &'static str) -> impl FnOnce(std::io::Error) -> FormatError {
+    FormatError::io(path, what)
+}
 
 const PAGE_HEADER: usize = 16;
 const NODE_HEADER: usize = 8;
@@ -224,14 +228,14 @@ impl LmdbReader {
         Self::with_source(name.to_owned(), Source::Memory(bytes))
     }
 
-    fn err(path: &Path, reason: impl Into<String>) -> DataError {
-        DataError::Lmdb {
+    fn err(path: &Path, reason: impl Into<String>) -> FormatError {
+        FormatError::Lmdb {
             path: path.to_owned(),
             reason: reason.into(),
         }
     }
 
-    fn corrupt(&self, reason: impl Into<String>) -> DataError {
+    fn corrupt(&self, reason: impl Into<String>) -> FormatError {
         Self::err(&self.path, reason)
     }
 
@@ -795,7 +799,8 @@ pub fn write_lmdb(
     let result = write_env(dir, &tmp, entries);
     match result {
         Ok(stat) => {
-            replace_dir(&tmp, dir)?;
+            replace_dir(&tmp, dir)
+                .map_err(io_err(dir, "cannot move the new directory into place"))?;
             Ok(stat)
         }
         Err(e) => {
@@ -818,7 +823,7 @@ fn write_env(
         next: 2,
         path: data_path.clone(),
     };
-    let write_err = |reason: String| DataError::Write {
+    let write_err = |reason: String| FormatError::Write {
         path: dir.to_owned(),
         reason,
     };

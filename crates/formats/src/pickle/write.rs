@@ -8,7 +8,8 @@
 
 use std::collections::HashMap;
 
-use crate::pyobj::{ArrayData, DType, DictKey, NdArray, PyValue};
+use crate::numpy::{ArrayData, DType, NdArray};
+use crate::pickle::plain::{DictKey, PyValue};
 
 mod op {
     pub const PROTO: u8 = 0x80;
@@ -258,7 +259,7 @@ impl Writer {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::pyobj::parse_pickle;
+    use crate::pickle::plain::parse_pickle;
 
     #[test]
     fn values_round_trip_through_our_reader() {

@@ -1,4 +1,4 @@
-//! Writes weights as a PyTorch zip checkpoint in the release layout, `{"model": state_dict,
+//! Writes f32 tensors as a PyTorch zip checkpoint in the release layout, `{"model": state_dict,
 //! "meta_cfg": config}`, so a model trained here loads in the release's Python code with
 //! `torch.load(path, map_location="cpu")` (with `weights_only` either way).
 //!
@@ -13,10 +13,9 @@ use std::collections::BTreeMap;
 use std::io::Write;
 use std::path::Path;
 
-use candle_core::{DType, Tensor};
-
-use crate::config::ModelConfig;
-use crate::error::{NetError, Result};
+use crate::atomic::write_via_temp;
+use crate::error::{FormatError, Result};
+use crate::pickle::plain::{DictKey, PyValue};
 
 /// The single top folder torch's reader takes from the first entry; torch itself writes this.
 const ARCHIVE: &str = "archive";
@@ -169,68 +168,76 @@ impl Pickler {
     }
 
     /// Plain data (the configuration) as Python dicts, lists, strings, numbers and None.
-    fn json(&mut self, v: &serde_json::Value) {
-        use serde_json::Value;
+    fn plain(&mut self, v: &PyValue, depth: usize) -> std::result::Result<(), String> {
+        if depth > MAX_CONFIG_DEPTH {
+            return Err(format!(
+                "the configuration nests deeper than {MAX_CONFIG_DEPTH} levels"
+            ));
+        }
         match v {
-            Value::Null => self.out.push(op::NONE),
-            Value::Bool(b) => self.out.push(if *b { op::NEWTRUE } else { op::NEWFALSE }),
-            Value::Number(n) => {
-                if let Some(i) = n.as_i64() {
-                    self.int(i as i128)
-                } else if let Some(u) = n.as_u64() {
-                    self.int(u as i128)
-                } else {
-                    self.out.push(op::BINFLOAT);
-                    self.out
-                        .extend(n.as_f64().unwrap_or(f64::NAN).to_be_bytes());
-                }
+            PyValue::None => self.out.push(op::NONE),
+            PyValue::Bool(b) => self.out.push(if *b { op::NEWTRUE } else { op::NEWFALSE }),
+            PyValue::Int(i) => self.int(i128::from(*i)),
+            PyValue::Float(f) => {
+                self.out.push(op::BINFLOAT);
+                self.out.extend(f.to_be_bytes());
             }
-            Value::String(s) => self.str(s),
-            Value::Array(items) => {
+            PyValue::Str(s) => self.str(s),
+            PyValue::List(items) => {
                 self.out.push(op::EMPTY_LIST);
                 if !items.is_empty() {
                     self.out.push(op::MARK);
                     for item in items {
-                        self.json(item);
+                        self.plain(item, depth + 1)?;
                     }
                     self.out.push(op::APPENDS);
                 }
             }
-            Value::Object(map) => {
+            PyValue::Dict(entries) => {
                 self.out.push(op::EMPTY_DICT);
-                if !map.is_empty() {
+                if !entries.is_empty() {
                     self.out.push(op::MARK);
-                    for (k, item) in map {
-                        self.str(k);
-                        self.json(item);
+                    for (k, item) in entries {
+                        match k {
+                            DictKey::Str(s) => self.str(s),
+                            DictKey::Int(i) => self.int(i128::from(*i)),
+                        }
+                        self.plain(item, depth + 1)?;
                     }
                     self.out.push(op::SETITEMS);
                 }
             }
+            PyValue::Bytes(_) | PyValue::Array(_) => {
+                return Err(format!(
+                    "the configuration holds {}, which a checkpoint's meta_cfg does not",
+                    v.kind()
+                ))
+            }
         }
+        Ok(())
     }
 }
 
-fn io_err(path: &Path, source: std::io::Error) -> NetError {
-    NetError::Io {
-        path: path.to_owned(),
-        source,
-    }
+/// Nesting of the configuration written (ours is 2 deep).
+const MAX_CONFIG_DEPTH: usize = 64;
+
+fn io_err(path: &Path) -> impl Fn(std::io::Error) -> FormatError + '_ {
+    |e| FormatError::io(path, "cannot write")(e)
 }
 
-fn zip_err(path: &Path, e: zip::result::ZipError) -> NetError {
-    NetError::Format {
+fn write_err(path: &Path, reason: impl std::fmt::Display) -> FormatError {
+    FormatError::Write {
         path: path.to_owned(),
-        reason: format!("writing the torch zip: {e}"),
+        reason: reason.to_string(),
     }
 }
 
 /// The pickle `{"model": OrderedDict(key -> tensor), "meta_cfg": config or None}`, with tensor
 /// `i` (in key order) stored as `data/<i>`.
 fn checkpoint_pickle(
-    tensors: &[(&String, Vec<usize>)],
-    config: Option<&serde_json::Value>,
-) -> Vec<u8> {
+    tensors: &[(&str, &[usize])],
+    config: Option<&PyValue>,
+) -> std::result::Result<Vec<u8>, String> {
     let mut p = Pickler::default();
     p.out.extend([op::PROTO, 2]);
     p.out.push(op::EMPTY_DICT);
@@ -247,46 +254,43 @@ fn checkpoint_pickle(
     }
     p.str("meta_cfg");
     match config {
-        Some(v) => p.json(v),
+        Some(v) => p.plain(v, 0)?,
         None => p.out.push(op::NONE),
     }
     p.out.push(op::SETITEMS);
     p.out.push(op::STOP);
-    p.out
+    Ok(p.out)
 }
 
-/// Writes `tensors` (converted to f32, row-major) as a torch zip checkpoint
-/// `{"model": state_dict, "meta_cfg": config}` that `torch.load` reads, atomically (temp
-/// sibling + rename). `meta_cfg` is the configuration as a plain dict, or None.
-pub fn write_torch_checkpoint(
+/// Writes f32 tensors as a torch zip checkpoint `{"model": state_dict, "meta_cfg": config}`
+/// that `torch.load` reads, atomically (temp sibling + rename). `tensors` gives each key and
+/// shape in the order written; `data(i)` is asked for tensor `i`'s row-major values when it is
+/// written, so only one tensor's bytes exist at a time. `meta_cfg` is plain data (dicts, lists,
+/// strings, numbers, None), or None.
+pub fn write_torch_zip(
     path: &Path,
-    tensors: &BTreeMap<String, Tensor>,
-    config: Option<&ModelConfig>,
+    tensors: &[(&str, &[usize])],
+    meta_cfg: Option<&PyValue>,
+    mut data: impl FnMut(usize) -> std::result::Result<Vec<f32>, String>,
 ) -> Result<()> {
-    let cfg_json = config
-        .map(serde_json::to_value)
-        .transpose()
-        .map_err(|e| NetError::Config(e.to_string()))?;
-    let shapes: Vec<(&String, Vec<usize>)> = tensors
-        .iter()
-        .map(|(k, t)| (k, t.dims().to_vec()))
-        .collect();
-    let pickle = checkpoint_pickle(&shapes, cfg_json.as_ref());
-
-    gagavatar_splat::scene::write_via_temp(
+    let pickle = checkpoint_pickle(tensors, meta_cfg).map_err(|e| write_err(path, e))?;
+    write_via_temp(
         path,
-        |tmp| write_archive(tmp, path, &pickle, tensors),
-        |e| io_err(path, e),
+        |tmp| write_archive(tmp, path, &pickle, tensors, &mut data),
+        io_err(path),
     )
 }
+
+type TensorData<'d> = &'d mut dyn FnMut(usize) -> std::result::Result<Vec<f32>, String>;
 
 fn write_archive(
     tmp: &Path,
     path: &Path,
     pickle: &[u8],
-    tensors: &BTreeMap<String, Tensor>,
+    tensors: &[(&str, &[usize])],
+    data: TensorData,
 ) -> Result<()> {
-    let file = std::fs::File::create(tmp).map_err(|e| io_err(path, e))?;
+    let file = std::fs::File::create(tmp).map_err(io_err(path))?;
     let mut zip = zip::ZipWriter::new(std::io::BufWriter::new(file));
     let opts = |len: usize| {
         zip::write::SimpleFileOptions::default()
@@ -296,22 +300,31 @@ fn write_archive(
     };
     let entry = |zip: &mut zip::ZipWriter<_>, name: &str, bytes: &[u8]| -> Result<()> {
         zip.start_file(format!("{ARCHIVE}/{name}"), opts(bytes.len()))
-            .map_err(|e| zip_err(path, e))?;
-        zip.write_all(bytes).map_err(|e| io_err(path, e))
+            .map_err(|e| write_err(path, format!("writing the torch zip: {e}")))?;
+        zip.write_all(bytes).map_err(io_err(path))
     };
     entry(&mut zip, "data.pkl", pickle)?;
     entry(&mut zip, "byteorder", b"little")?;
-    for (i, t) in tensors.values().enumerate() {
-        let v: Vec<f32> = t.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
+    for (i, (key, shape)) in tensors.iter().enumerate() {
+        let v = data(i).map_err(|e| write_err(path, format!("tensor `{key}`: {e}")))?;
+        let numel: usize = shape.iter().product();
+        if v.len() != numel {
+            return Err(write_err(
+                path,
+                format!("tensor `{key}` has {} values for shape {shape:?}", v.len()),
+            ));
+        }
         let bytes: Vec<u8> = v.iter().flat_map(|x| x.to_le_bytes()).collect();
         entry(&mut zip, &format!("data/{i}"), &bytes)?;
     }
     entry(&mut zip, "version", FORMAT_VERSION.as_bytes())?;
-    let writer = zip.finish().map_err(|e| zip_err(path, e))?;
+    let writer = zip
+        .finish()
+        .map_err(|e| write_err(path, format!("writing the torch zip: {e}")))?;
     let file = writer
         .into_inner()
-        .map_err(|e| io_err(path, e.into_error()))?;
-    file.sync_all().map_err(|e| io_err(path, e))
+        .map_err(|e| io_err(path)(e.into_error()))?;
+    file.sync_all().map_err(io_err(path))
 }
 
 #[cfg(test)]
@@ -333,5 +346,74 @@ mod tests {
         let mut p = Pickler::default();
         p.int(300);
         assert_eq!(p.out, [b'M', 0x2c, 0x01]);
+    }
+
+    #[test]
+    fn written_checkpoints_read_back() {
+        let dir = std::env::temp_dir().join(format!("gagavatar-tzw-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("w.pt");
+        let cfg = PyValue::Dict(vec![
+            (DictKey::Str("name".into()), PyValue::Str("tiny".into())),
+            (
+                DictKey::Str("sizes".into()),
+                PyValue::List(vec![PyValue::Int(1 << 40)]),
+            ),
+        ]);
+        let shapes: [(&str, &[usize]); 2] = [("a.w", &[2, 3]), ("b", &[])];
+        write_torch_zip(&path, &shapes, Some(&cfg), |i| {
+            Ok(if i == 0 {
+                (0..6).map(|x| x as f32 * 0.5).collect()
+            } else {
+                vec![7.0]
+            })
+        })
+        .unwrap();
+        let back = crate::torch_zip::read::read_torch_zip(&path).unwrap();
+        let keys: Vec<&String> = back.keys().collect();
+        assert_eq!(keys, ["model.a.w", "model.b"]);
+        assert_eq!(back["model.a.w"].shape, [2, 3]);
+        assert_eq!(
+            back["model.a.w"].data,
+            crate::tensor::RawData::Float(vec![0.0, 0.5, 1.0, 1.5, 2.0, 2.5])
+        );
+        // torch's reader takes the top folder from the first entry and needs `version`;
+        // storages are 64-byte aligned so `torch.load(mmap=True)` can map them.
+        {
+            use std::io::Read;
+            let mut zip = zip::ZipArchive::new(std::fs::File::open(&path).unwrap()).unwrap();
+            let names: Vec<String> = zip.file_names().map(|s| s.unwrap().into_owned()).collect();
+            assert_eq!(names.first().map(String::as_str), Some("archive/data.pkl"));
+            assert!(names.iter().all(|n| n.starts_with("archive/")), "{names:?}");
+            let n_data = names
+                .iter()
+                .filter(|n| n.starts_with("archive/data/"))
+                .count();
+            assert_eq!(n_data, 2);
+            for i in 0..zip.len() {
+                let f = zip.by_index(i).unwrap();
+                let start = f.data_start().unwrap();
+                assert_eq!(start % 64, 0, "{:?} data starts at {start}", f.name());
+            }
+            let mut read = |name: &str| {
+                let mut v = Vec::new();
+                zip.by_name(name).unwrap().read_to_end(&mut v).unwrap();
+                v
+            };
+            assert_eq!(read("archive/version"), b"3\n");
+            assert_eq!(read("archive/byteorder"), b"little");
+            let pkl = read("archive/data.pkl");
+            let has = |needle: &[u8]| pkl.windows(needle.len()).any(|w| w == needle);
+            assert!(has(b"meta_cfg") && has(b"sizes"), "config in data.pkl");
+        }
+        // A wrong value count fails and leaves nothing at the path.
+        std::fs::remove_file(&path).unwrap();
+        let e = write_torch_zip(&path, &shapes, None, |_| Ok(vec![1.0])).unwrap_err();
+        assert!(
+            e.to_string().contains("has 1 values for shape [2, 3]"),
+            "{e}"
+        );
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 0);
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

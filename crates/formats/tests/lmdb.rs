@@ -6,8 +6,8 @@ mod common;
 use std::path::Path;
 
 use common::{data, value_bytes, TempDir};
-use gagavatar_data::lmdb::{write_lmdb, LmdbReader};
-use gagavatar_data::DataError;
+use gagavatar_formats::lmdb::{write_lmdb, LmdbReader};
+use gagavatar_formats::FormatError;
 
 fn expected_entries(fixture: &str) -> Vec<(Vec<u8>, Vec<u8>)> {
     let exp = common::read_json("lmdb_expected.json");
@@ -254,7 +254,7 @@ fn writer_refuses_bad_keys() {
     for (entries, needle) in cases {
         let e = write_lmdb(&target, entries).unwrap_err();
         assert!(
-            matches!(e, DataError::Write { .. }) && e.to_string().contains(needle),
+            matches!(e, FormatError::Write { .. }) && e.to_string().contains(needle),
             "{e}"
         );
         assert!(!target.exists(), "nothing is left behind on failure");
@@ -285,9 +285,10 @@ fn xorshift(state: &mut u64) -> u64 {
 
 #[test]
 fn truncated_and_corrupted_files_give_errors() {
-    // Every prefix of a small environment (Python-written, 3 pages).
-    let small = std::fs::read(data("release_small/img_lmdb/data.mdb")).unwrap();
-    let small_keys = LmdbReader::open(&data("release_small/img_lmdb"))
+    // Every prefix of a small environment written by Python's `lmdb` (3 pages: a copy of
+    // `crates/data/tests/data/release_small/img_lmdb`).
+    let small = std::fs::read(data("lmdb_small/data.mdb")).unwrap();
+    let small_keys = LmdbReader::open(&data("lmdb_small"))
         .unwrap()
         .keys()
         .unwrap();
@@ -347,10 +348,10 @@ fn truncated_and_corrupted_files_give_errors() {
 
 #[test]
 fn unsupported_and_foreign_files_are_named() {
-    let e = LmdbReader::open(&data("records_p4.pkl"))
+    let e = LmdbReader::open(&data("numpy_misc_p4.pkl"))
         .unwrap_err()
         .to_string();
-    assert!(e.contains("records_p4.pkl") && e.contains("LMDB"), "{e}");
+    assert!(e.contains("numpy_misc_p4.pkl") && e.contains("LMDB"), "{e}");
     let e = LmdbReader::open(&data("no_such_env"))
         .unwrap_err()
         .to_string();
