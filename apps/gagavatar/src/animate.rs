@@ -297,22 +297,30 @@ pub fn to_rgb8(images: &Tensor) -> Result<Vec<Vec<u8>>> {
         .collect())
 }
 
-/// Places `left` (resized to `h` x `w`) and `right` side by side.
+/// Places `left` (fitted into `w` x `h` without distortion: black bars where its shape differs)
+/// and `right` side by side.
 pub fn side_by_side(left: &image::RgbImage, right: &[u8], w: usize, h: usize) -> Vec<u8> {
-    let left = if left.width() as usize != w || left.height() as usize != h {
-        image::imageops::resize(
-            left,
-            w as u32,
-            h as u32,
-            image::imageops::FilterType::Triangle,
-        )
-    } else {
+    let (lw, lh) = (left.width() as usize, left.height() as usize);
+    let fitted = if lw == w && lh == h {
         left.clone()
+    } else {
+        let scale = (w as f64 / lw.max(1) as f64).min(h as f64 / lh.max(1) as f64);
+        let nw = ((lw as f64 * scale).round() as u32).clamp(1, w as u32);
+        let nh = ((lh as f64 * scale).round() as u32).clamp(1, h as u32);
+        let small = image::imageops::resize(left, nw, nh, image::imageops::FilterType::Triangle);
+        let mut canvas = image::RgbImage::new(w as u32, h as u32);
+        image::imageops::overlay(
+            &mut canvas,
+            &small,
+            i64::from((w as u32 - nw) / 2),
+            i64::from((h as u32 - nh) / 2),
+        );
+        canvas
     };
     let mut out = vec![0u8; 2 * w * h * 3];
     for y in 0..h {
         let row = &mut out[y * 2 * w * 3..(y + 1) * 2 * w * 3];
-        row[..w * 3].copy_from_slice(&left.as_raw()[y * w * 3..(y + 1) * w * 3]);
+        row[..w * 3].copy_from_slice(&fitted.as_raw()[y * w * 3..(y + 1) * w * 3]);
         row[w * 3..].copy_from_slice(&right[y * w * 3..(y + 1) * w * 3]);
     }
     out
@@ -323,6 +331,17 @@ pub fn progress(len: usize, what: &str) -> ProgressBar {
     bar.set_style(
         ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} frames, {per_sec}, ETA {eta}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar.set_message(what.to_string());
+    bar
+}
+
+/// A progress line for a job of unknown length.
+pub fn spinner(what: &str) -> ProgressBar {
+    let bar = ProgressBar::new_spinner();
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} {msg}: {pos} frames, {per_sec}, {elapsed}")
+            .unwrap_or_else(|_| ProgressStyle::default_spinner()),
     );
     bar.set_message(what.to_string());
     bar

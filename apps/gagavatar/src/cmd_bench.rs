@@ -21,6 +21,27 @@ pub enum BenchCmd {
         after_help = "Seeded random weights of the preset unless --ckpt is given.\n\nExample:\n  gagavatar bench model --preset release --runs 3 --threads 2"
     )]
     Model(ModelBench),
+    /// Video reading: decode speed (frames/s delivered as RGB) at 512x512 and 1080p through
+    /// ffmpeg and the built-in OpenH264 path, and peak memory while streaming 1080p. The clips
+    /// are made with ffmpeg first (x264 High with B-frames, like phone videos).
+    #[command(after_help = "Example:\n  gagavatar bench video --threads 2 --runs 5")]
+    Video(VideoBench),
+}
+
+#[derive(Debug, Args)]
+pub struct VideoBench {
+    /// ffmpeg decoder threads.
+    #[arg(long, default_value_t = 2)]
+    threads: usize,
+    /// Timed runs per clip (the median is reported).
+    #[arg(long, default_value_t = 3)]
+    runs: usize,
+    /// Length of the test clips in frames (30 fps).
+    #[arg(long, default_value_t = 300)]
+    frames: usize,
+    /// Folder for the test clips (default: a temporary folder, removed afterwards).
+    #[arg(long)]
+    dir: Option<std::path::PathBuf>,
 }
 
 #[derive(Debug, Args)]
@@ -69,6 +90,7 @@ pub fn run(cmd: BenchCmd) -> Result<()> {
     match cmd {
         BenchCmd::Splat(args) => bench_splat(args),
         BenchCmd::Model(args) => bench_model(args),
+        BenchCmd::Video(args) => bench_video(args),
     }
 }
 
@@ -262,4 +284,207 @@ fn bench_model(args: ModelBench) -> Result<()> {
         println!("  peak RSS               {mib:>9.0} MiB");
     }
     Ok(())
+}
+
+/// Peak resident memory of another process (Linux `VmHWM`), in MiB.
+fn peak_rss_of_mib(pid: u32) -> Option<f64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
+}
+
+fn bench_video(args: VideoBench) -> Result<()> {
+    use gagavatar_video::read::{find_ffmpeg, DecoderChoice, ReadOptions, VideoReader};
+    use std::process::Command;
+
+    let tools = find_ffmpeg(None)
+        .context("bench video makes its clips with ffmpeg, which is not on PATH")?;
+    let (dir, _cleanup) = match &args.dir {
+        Some(d) => {
+            std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
+            (d.clone(), None)
+        }
+        None => {
+            let d =
+                std::env::temp_dir().join(format!("gagavatar-bench-video-{}", std::process::id()));
+            std::fs::create_dir_all(&d)?;
+            (d.clone(), Some(RemoveDir(d)))
+        }
+    };
+    let n = args.frames.max(1);
+    let make = |name: &str, size: &str, extra: &[&str]| -> Result<std::path::PathBuf> {
+        let out = dir.join(name);
+        if out.exists() {
+            return Ok(out);
+        }
+        eprintln!("making {} ({size}, {n} frames) with ffmpeg", out.display());
+        let st = Command::new(&tools.ffmpeg)
+            .args([
+                "-hide_banner",
+                "-loglevel",
+                "error",
+                "-y",
+                "-f",
+                "lavfi",
+                "-i",
+            ])
+            // Temporal noise stands in for camera grain, so the bitrate is a camera's, not a
+            // test pattern's.
+            .arg(format!("testsrc2=size={size}:rate=30,noise=alls=8:allf=t"))
+            .args(["-frames:v", &n.to_string()])
+            .args(extra)
+            .arg(&out)
+            .status()?;
+        anyhow::ensure!(st.success(), "ffmpeg could not make {}", out.display());
+        Ok(out)
+    };
+    // Phone-like bitrates: 16 Mbit/s at 1080p30, 2 Mbit/s (about the same bits per pixel) at
+    // 512x512.
+    let x264 = |profile: &'static str, rate: &'static str| {
+        [
+            "-c:v",
+            "libx264",
+            "-preset",
+            "veryfast",
+            "-profile:v",
+            profile,
+            "-b:v",
+            rate,
+            "-maxrate",
+            rate,
+            "-bufsize",
+            rate,
+            "-pix_fmt",
+            "yuv420p",
+        ]
+    };
+    let clips = [
+        (
+            "512x512 H.264 High, ffmpeg",
+            make("high_512.mp4", "512x512", &x264("high", "2M"))?,
+            DecoderChoice::Ffmpeg,
+        ),
+        (
+            "1920x1080 H.264 High, ffmpeg",
+            make("high_1080.mp4", "1920x1080", &x264("high", "16M"))?,
+            DecoderChoice::Ffmpeg,
+        ),
+        (
+            "512x512 H.264 Baseline, OpenH264",
+            make("base_512.mp4", "512x512", &x264("baseline", "2M"))?,
+            DecoderChoice::OpenH264,
+        ),
+        (
+            "1920x1080 H.264 Baseline, OpenH264",
+            make("base_1080.mp4", "1920x1080", &x264("baseline", "16M"))?,
+            DecoderChoice::OpenH264,
+        ),
+    ];
+    println!(
+        "peak RSS of this process before reading: {:.0} MiB",
+        peak_rss_mib().unwrap_or(f64::NAN)
+    );
+    println!(
+        "video decoding, {} threads for ffmpeg ({} {}.{}), {n} frames per clip, median of {} runs:",
+        args.threads,
+        tools.ffmpeg.display(),
+        tools.version.0,
+        tools.version.1,
+        args.runs.max(1)
+    );
+    for (label, path, decoder) in &clips {
+        let bytes = std::fs::metadata(path)?.len();
+        let opts = ReadOptions {
+            threads: Some(args.threads),
+            decoder: *decoder,
+            ..ReadOptions::default()
+        };
+        let mut rates = Vec::new();
+        let mut cpu_self = Vec::new();
+        let mut cpu_child = Vec::new();
+        let mut child_peak = 0f64;
+        for _ in 0..args.runs.max(1) {
+            let (s0, c0) = (cpu_seconds(false), cpu_seconds(true));
+            let t0 = Instant::now();
+            let mut reader = VideoReader::open(path, &opts)?;
+            let mut count = 0usize;
+            let mut checksum = 0u64;
+            while let Some(frame) = reader.next() {
+                let frame = frame?;
+                // Touch the pixels so nothing is optimised away.
+                checksum = checksum.wrapping_add(u64::from(frame.rgb.as_raw()[count % 97]));
+                count += 1;
+                if let Some(pid) = reader.ffmpeg_pid() {
+                    if let Some(mib) = peak_rss_of_mib(pid) {
+                        child_peak = child_peak.max(mib);
+                    }
+                }
+            }
+            drop(reader);
+            let dt = t0.elapsed().as_secs_f64();
+            anyhow::ensure!(count == n, "{label}: read {count} of {n} frames");
+            cpu_self.push(1e3 * (cpu_seconds(false) - s0) / count as f64);
+            cpu_child.push(1e3 * (cpu_seconds(true) - c0) / count as f64);
+            std::hint::black_box(checksum);
+            rates.push(count as f64 / dt);
+        }
+        let mbps = bytes as f64 * 8.0 / (n as f64 / 30.0) / 1e6;
+        let ours = peak_rss_mib().unwrap_or(f64::NAN);
+        let child = if child_peak > 0.0 {
+            format!(
+                "; peak RSS: ffmpeg {child_peak:.0} MiB + this process {ours:.0} MiB = {:.0} MiB",
+                child_peak + ours
+            )
+        } else {
+            format!("; peak RSS (this process) {ours:.0} MiB")
+        };
+        let cpu = median(&mut cpu_self) + median(&mut cpu_child);
+        println!(
+            "  {label:<36} {:>7.1} frames/s (min {:.1}, max {:.1}), {mbps:.1} Mbit/s; CPU per frame \
+             {cpu:.2} ms (reader {:.2} ms, ffmpeg {:.2} ms){child}",
+            median(&mut rates.clone()),
+            rates.iter().cloned().fold(f64::INFINITY, f64::min),
+            rates.iter().cloned().fold(0.0, f64::max),
+            median(&mut cpu_self),
+            median(&mut cpu_child),
+        );
+    }
+    if let Ok(load) = std::fs::read_to_string("/proc/loadavg") {
+        println!(
+            "  load average {} on {} cores (other work slows the wall-clock rates, not the CPU per frame)",
+            load.split_whitespace().take(3).collect::<Vec<_>>().join(" "),
+            num_cpus()
+        );
+    }
+    Ok(())
+}
+
+/// User + system CPU seconds of this process, or of its finished (waited-for) children.
+fn cpu_seconds(children: bool) -> f64 {
+    #[cfg(unix)]
+    {
+        // SAFETY: getrusage only writes the struct it is given.
+        let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
+        let who = if children {
+            libc::RUSAGE_CHILDREN
+        } else {
+            libc::RUSAGE_SELF
+        };
+        if unsafe { libc::getrusage(who, &mut ru) } == 0 {
+            let t = |tv: libc::timeval| tv.tv_sec as f64 + tv.tv_usec as f64 * 1e-6;
+            return t(ru.ru_utime) + t(ru.ru_stime);
+        }
+    }
+    let _ = children;
+    0.0
+}
+
+/// Removes a folder when dropped.
+struct RemoveDir(std::path::PathBuf);
+
+impl Drop for RemoveDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
 }

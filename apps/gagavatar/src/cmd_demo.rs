@@ -79,6 +79,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         driver: assets.join("driver.json"),
         output: a.output.join("reenact.mp4"),
         side_by_side: true,
+        driver_video: None,
         fps: None,
         start: 0,
         max_frames: None,

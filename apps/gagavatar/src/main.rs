@@ -11,6 +11,7 @@ mod cmd_reenact;
 mod cmd_splat;
 mod cmd_synth;
 mod cmd_train;
+mod cmd_video;
 
 use clap::{Parser, Subcommand};
 
@@ -48,6 +49,9 @@ enum Command {
     Orbit(cmd_orbit::OrbitArgs),
     /// Write the avatar's Gaussians as a standard 3DGS .ply (plus the feature channels).
     ExportPly(cmd_orbit::ExportPlyArgs),
+    /// Read videos as every command does: metadata, frames.
+    #[command(subcommand)]
+    Video(cmd_video::VideoCmd),
     /// Benchmarks of the hot paths on this machine.
     #[command(subcommand)]
     Bench(cmd_bench::BenchCmd),
@@ -117,6 +121,7 @@ fn main() {
         Command::Reenact(args) => cmd_reenact::run(args),
         Command::Orbit(args) => cmd_orbit::run_orbit(args),
         Command::ExportPly(args) => cmd_orbit::run_export_ply(args),
+        Command::Video(cmd) => cmd_video::run(cmd),
         Command::Bench(cmd) => cmd_bench::run(cmd),
         Command::SynthData(args) => cmd_synth::run(args),
         Command::Train(args) => cmd_train::run_train(args),

@@ -573,3 +573,97 @@ fn demo_uses_only_shipped_files() {
     assert!(!scene.is_empty());
     let _ = std::fs::remove_dir_all(&out);
 }
+
+#[test]
+fn reenact_shows_the_driving_video_beside_the_result() {
+    let f = fixture();
+    // A 5-frame driving video of flat colours, 96x64 (not square: it is fitted with bars), read
+    // by the built-in path, so no ffmpeg is needed.
+    let video = f.path("driving.mp4");
+    let colours: Vec<[u8; 3]> = (0..5u8).map(|i| [40 * i + 20, 200 - 30 * i, 90]).collect();
+    let mut w = gagavatar_video::VideoWriter::create(
+        &video,
+        96,
+        64,
+        gagavatar_video::VideoOptions {
+            fps: 10.0,
+            watermark: false,
+        },
+    )
+    .unwrap();
+    for c in &colours {
+        w.push_rgb(&c.repeat(96 * 64)).unwrap();
+    }
+    w.finish().unwrap();
+    let out = f.s("driving_sbs/");
+    let args = avatar_cmd(
+        f,
+        "reenact",
+        &[
+            "--driver",
+            &f.s("driver.json"),
+            "--driver-video",
+            &video.display().to_string(),
+            "--start",
+            "1",
+            "--max-frames",
+            "3",
+            "--no-watermark",
+            "-o",
+            &out,
+        ],
+    );
+    ok(&strs(&args));
+    for k in 0..3 {
+        let img = image::open(Path::new(&out).join(format!("frame_{k:05}.png")))
+            .unwrap()
+            .to_rgb8();
+        assert_eq!(img.dimensions(), (2 * SIZE as u32, SIZE as u32));
+        // The left half's centre shows video frame 1 + k; the 96x64 frame fills the width and
+        // leaves black bars above and below.
+        let c = img.get_pixel(SIZE as u32 / 2, SIZE as u32 / 2).0;
+        let e = colours[1 + k];
+        let diff = c
+            .iter()
+            .zip(e)
+            .map(|(a, b)| (*a as i32 - b as i32).abs())
+            .max();
+        assert!(diff <= Some(4), "frame {k}: {c:?} vs {e:?}");
+        assert_eq!(img.get_pixel(SIZE as u32 / 2, 2).0, [0, 0, 0], "bar");
+    }
+    // A video shorter than the driver is refused before rendering.
+    let short = f.path("short.mp4");
+    let mut w = gagavatar_video::VideoWriter::create(
+        &short,
+        96,
+        64,
+        gagavatar_video::VideoOptions::default(),
+    )
+    .unwrap();
+    for c in &colours[..3] {
+        w.push_rgb(&c.repeat(96 * 64)).unwrap();
+    }
+    w.finish().unwrap();
+    let args = avatar_cmd(
+        f,
+        "reenact",
+        &[
+            "--driver",
+            &f.s("driver.json"),
+            "--driver-video",
+            &short.display().to_string(),
+            "--start",
+            "1",
+            "-o",
+            &f.s("never.mp4"),
+        ],
+    );
+    let o = run(&strs(&args));
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("--driver-video") && err.contains("has 2 frames"),
+        "{err}"
+    );
+    assert!(!f.path("never.mp4").exists());
+}

@@ -1,7 +1,13 @@
-//! Video output for `gagavatar reenact` / `orbit`: frames in, a finished file out, written by this
-//! crate alone (no ffmpeg or other external tool).
+//! Videos in and out.
 //!
-//! The format follows the output path (see [`VideoFormat::from_path`]):
+//! **Reading** ([`read`]): every command reads videos through [`read::VideoReader`], a streaming
+//! iterator of upright RGB frames with timestamps, plus metadata ([`read::VideoMeta`]). It uses
+//! the `ffmpeg` program when it is on PATH (any codec and container), else the bundled OpenH264
+//! decoder for H.264 Baseline mp4 (what this crate writes), and also takes folders of images and
+//! single images. See the [`read`] module for the rules (start, fps resampling, errors).
+//!
+//! **Writing** (`gagavatar reenact` / `orbit`): frames in, a finished file out, written by this
+//! crate alone (no ffmpeg or other external tool). The format follows the output path (see [`VideoFormat::from_path`]):
 //! - `.mp4`: H.264 Constrained Baseline, yuv420p (BT.601 limited range, signalled in the SPS),
 //!   a keyframe at least every 2 s, `moov` before `mdat` so browsers start playing at once.
 //!   H.264 4:2:0 cannot code odd sizes, so an odd width or height is padded by one pixel that
@@ -27,6 +33,7 @@ mod gif_out;
 mod h264;
 pub mod mp4;
 mod png_dir;
+pub mod read;
 mod temp;
 mod watermark;
 mod yuv;
@@ -37,14 +44,12 @@ pub use watermark::{draw_watermark, watermark_rect, WATERMARK_TEXT};
 /// larger value is almost certainly a units mistake.
 pub const MAX_FPS: f64 = 1000.0;
 
+/// Every message names the file it is about. Causes are part of the message and deliberately not
+/// a `source()`: callers print errors with their chain (`{:#}`), which would show them twice.
 #[derive(Debug, thiserror::Error)]
 pub enum VideoError {
-    #[error("{}: {source}", path.display())]
-    Io {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
+    #[error("{}: {err}", path.display())]
+    Io { path: PathBuf, err: std::io::Error },
     #[error("frame has {got} bytes, expected {expected} (width * height * 3, RGB u8)")]
     BadFrame { expected: usize, got: usize },
     #[error("invalid video size {width}x{height}: {reason}")]
@@ -67,14 +72,95 @@ pub enum VideoError {
     Format(String),
     #[error("decoding failed: {0}")]
     Decode(String),
+    /// A video the built-in decoder cannot read correctly, where ffmpeg is absent (or was not
+    /// chosen): `what` it holds, and `why` ffmpeg was not used, with how to install it.
+    #[error("{}: {what} needs ffmpeg{why}", path.display())]
+    NeedsFfmpeg {
+        path: PathBuf,
+        what: String,
+        why: String,
+    },
+    /// ffmpeg or ffprobe failed; `message` is their own first error line.
+    #[error("{}: {message}", path.display())]
+    Ffmpeg { path: PathBuf, message: String },
+    /// Not a video, a folder of images or an image.
+    #[error("{}: {reason}", path.display())]
+    NotVideo { path: PathBuf, reason: String },
+    /// A video with nothing to read: no video stream, no frames, or a start past its end.
+    #[error("{}: no video frames: {reason}", path.display())]
+    NoVideoFrames { path: PathBuf, reason: String },
+    /// A video cut short or broken: fewer frames decode than it holds.
+    #[error("{}: the video is truncated or damaged: {reason}", path.display())]
+    Damaged { path: PathBuf, reason: String },
+    /// A reading option out of range.
+    #[error("{0}")]
+    BadOption(String),
 }
 
 impl VideoError {
     pub(crate) fn io(path: &Path, source: std::io::Error) -> Self {
         VideoError::Io {
             path: path.to_path_buf(),
-            source,
+            err: source,
         }
+    }
+}
+
+/// Frames as read, written unchanged (no watermark: they are the user's own) as
+/// `frame_000000.png`, `frame_000001.png`, ... in a folder that appears complete or not at all
+/// (built under a hidden sibling name, renamed by [`FrameFolder::finish`]; an existing empty
+/// folder is reused, a non-empty one refused).
+pub struct FrameFolder {
+    sink: png_dir::PngDirSink,
+    width: u32,
+    height: u32,
+    frames: usize,
+}
+
+impl FrameFolder {
+    pub fn create(path: &Path, width: u32, height: u32) -> Result<Self, VideoError> {
+        Ok(FrameFolder {
+            sink: png_dir::PngDirSink::create(path, width as usize, height as usize, 6)?,
+            width,
+            height,
+            frames: 0,
+        })
+    }
+
+    /// The name frame `index` gets.
+    pub fn frame_name(index: usize) -> String {
+        png_dir::frame_name(index, 6)
+    }
+
+    pub fn push(&mut self, rgb: &image::RgbImage) -> Result<(), VideoError> {
+        if (rgb.width(), rgb.height()) != (self.width, self.height) {
+            return Err(VideoError::BadFrame {
+                expected: self.width as usize * self.height as usize * 3,
+                got: rgb.as_raw().len(),
+            });
+        }
+        self.sink.push(rgb.as_raw(), self.frames)?;
+        self.frames += 1;
+        Ok(())
+    }
+
+    /// Adds another file (an index of the frames, say) to the folder.
+    pub fn add_file(&self, name: &str, bytes: &[u8]) -> Result<(), VideoError> {
+        self.sink.add_file(name, bytes)
+    }
+
+    pub fn frames(&self) -> usize {
+        self.frames
+    }
+
+    /// Moves the folder into place; with no frames written nothing is.
+    pub fn finish(self) -> Result<(), VideoError> {
+        if self.frames == 0 {
+            return Err(VideoError::NoFrames {
+                path: self.sink.target().to_path_buf(),
+            });
+        }
+        self.sink.finish()
     }
 }
 
@@ -173,7 +259,7 @@ impl VideoWriter {
                 path, width, height, opts.fps,
             )?)),
             VideoFormat::Gif => Sink::Gif(gif_out::GifSink::create(path, width, height, opts.fps)?),
-            VideoFormat::PngDir => Sink::Png(png_dir::PngDirSink::create(path, width, height)?),
+            VideoFormat::PngDir => Sink::Png(png_dir::PngDirSink::create(path, width, height, 5)?),
         };
         Ok(VideoWriter {
             path: path.to_path_buf(),

@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 
 use crate::h264::{H264Encoder, NAL_PPS, NAL_SPS};
 use crate::temp::{check_file_target, temp_sibling, TempPath};
-use crate::yuv::{i420_to_rgb, I420};
+use crate::yuv::{i420_to_rgb_with, I420};
 use crate::VideoError;
 
 /// What [`read_mp4_info`] finds in the first video track.
@@ -614,21 +614,49 @@ impl<'a> Cursor<'a> {
     }
 }
 
+/// One entry of a track's edit list (`elst`): `segment_duration` in the movie timescale,
+/// `media_time` in the track timescale (-1 for an empty edit, a pause before the media).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Edit {
+    pub segment_duration: u64,
+    pub media_time: i64,
+    /// 16.16 fixed point; 1.0 plays at normal speed.
+    pub rate: i32,
+}
+
+/// What `avcC` says about an H.264 track.
+#[derive(Debug, Clone)]
+pub(crate) struct AvcConfig {
+    pub nal_length_size: usize,
+    /// Parameter sets in the order stored (SPS first, then PPS), each without a start code.
+    pub param_sets: Vec<Vec<u8>>,
+}
+
 /// The sample table of the first video track.
-struct Track {
-    width: usize,
-    height: usize,
-    timescale: u32,
+pub(crate) struct Track {
+    /// The sample entry's four-character code (`avc1`, `hvc1`, `vp09`, ...).
+    pub codec: [u8; 4],
+    pub width: usize,
+    pub height: usize,
+    pub timescale: u32,
+    /// The movie header's timescale, which `elst` segment durations use.
+    pub movie_timescale: u32,
     /// (sample count, delta) runs.
-    stts: Vec<(u32, u32)>,
-    sizes: Vec<u64>,
-    sync: Option<usize>,
+    pub stts: Vec<(u32, u32)>,
+    /// (sample count, composition offset) runs; empty when the file has no `ctts`.
+    pub ctts: Vec<(u32, i64)>,
+    pub sizes: Vec<u64>,
+    /// 1-based sync sample numbers; `None` when every sample is a sync sample (no `stss`).
+    pub sync: Option<Vec<u32>>,
     /// (first chunk, samples per chunk) runs, 1-based chunks.
     stsc: Vec<(u32, u32)>,
     chunk_offsets: Vec<u64>,
-    nal_length_size: usize,
-    /// Parameter sets from avcC, each without a start code.
-    param_sets: Vec<Vec<u8>>,
+    /// `None` for tracks that are not H.264.
+    pub avc: Option<AvcConfig>,
+    /// `tkhd` matrix entries a, b, c, d (16.16 fixed point).
+    pub matrix: [i32; 4],
+    /// `None` when the track has no edit list.
+    pub edits: Option<Vec<Edit>>,
 }
 
 /// Reads the top-level boxes, returning the `moov` body. `mdat` is skipped, not read.
@@ -650,12 +678,23 @@ fn read_moov(path: &Path, file: &mut File) -> Result<Vec<u8>, VideoError> {
             }
             s => (8, u64::from(s)),
         };
-        if size < header || size > len - pos {
+        if size < header {
             return Err(bad(
                 path,
                 format!(
                     "top-level box '{}' at byte {pos} has a bad size {size}",
                     String::from_utf8_lossy(&kind)
+                ),
+            ));
+        }
+        if size > len - pos {
+            return Err(bad(
+                path,
+                format!(
+                    "the file is truncated: box '{}' at byte {pos} needs {size} bytes, the \
+                     file ends after {}",
+                    String::from_utf8_lossy(&kind),
+                    len - pos
                 ),
             ));
         }
@@ -672,7 +711,26 @@ fn read_moov(path: &Path, file: &mut File) -> Result<Vec<u8>, VideoError> {
     ))
 }
 
+/// The first video track of an mp4 / mov file, its sample table read (not its samples).
+pub(crate) fn open_track(path: &Path) -> Result<(File, Track), VideoError> {
+    let mut file = File::open(path).map_err(|e| VideoError::io(path, e))?;
+    let file_len = file.metadata().map_err(|e| VideoError::io(path, e))?.len();
+    let moov = read_moov(path, &mut file)?;
+    let track = read_track(path, &moov, file_len)?;
+    Ok((file, track))
+}
+
 fn read_track(path: &Path, moov: &[u8], file_len: u64) -> Result<Track, VideoError> {
+    let movie_timescale = match child(path, moov, b"mvhd")? {
+        Some(mvhd) => {
+            let mut c = Cursor::new(path, "mvhd", mvhd);
+            let version = c.u8()?;
+            c.take(3)?;
+            c.take(if version == 1 { 16 } else { 8 })?;
+            c.u32()?
+        }
+        None => 0,
+    };
     for c in children(path, moov) {
         let (kind, trak) = c?;
         if &kind != b"trak" {
@@ -683,9 +741,51 @@ fn read_track(path: &Path, moov: &[u8], file_len: u64) -> Result<Track, VideoErr
         if hdlr.get(8..12) != Some(b"vide") {
             continue;
         }
-        return parse_video_track(path, mdia, file_len);
+        let mut track = parse_video_track(path, mdia, file_len)?;
+        track.movie_timescale = movie_timescale;
+        if let Some(tkhd) = child(path, trak, b"tkhd")? {
+            let mut c = Cursor::new(path, "tkhd", tkhd);
+            let version = c.u8()?;
+            c.take(3)?;
+            // Times, track id, reserved, duration; then reserved, layer, group, volume.
+            c.take(if version == 1 { 32 } else { 20 })?;
+            c.take(16)?;
+            let a = c.u32()? as i32;
+            let b = c.u32()? as i32;
+            c.u32()?;
+            let cc = c.u32()? as i32;
+            let d = c.u32()? as i32;
+            track.matrix = [a, b, cc, d];
+        }
+        if let Some(edts) = child(path, trak, b"edts")? {
+            if let Some(elst) = child(path, edts, b"elst")? {
+                let mut c = Cursor::new(path, "elst", elst);
+                let version = c.u8()?;
+                c.take(3)?;
+                let n = c.count(if version == 1 { 20 } else { 12 })?;
+                let mut edits = Vec::with_capacity(n);
+                for _ in 0..n {
+                    let (segment_duration, media_time) = if version == 1 {
+                        (c.u64()?, c.u64()? as i64)
+                    } else {
+                        (u64::from(c.u32()?), i64::from(c.u32()? as i32))
+                    };
+                    let rate = c.u32()? as i32;
+                    edits.push(Edit {
+                        segment_duration,
+                        media_time,
+                        rate,
+                    });
+                }
+                track.edits = Some(edits);
+            }
+        }
+        return Ok(track);
     }
-    Err(bad(path, "no video track"))
+    Err(VideoError::NoVideoFrames {
+        path: path.to_path_buf(),
+        reason: "it has no video track".into(),
+    })
 }
 
 fn parse_video_track(path: &Path, mdia: &[u8], file_len: u64) -> Result<Track, VideoError> {
@@ -711,38 +811,29 @@ fn parse_video_track(path: &Path, mdia: &[u8], file_len: u64) -> Result<Track, V
         return Err(bad(path, "'stsd' has no sample description"));
     }
     let entries = c.take(c.buf.len() - c.pos)?;
-    let (kind, avc1) = children(path, entries)
+    let (codec, entry) = children(path, entries)
         .next()
         .ok_or_else(|| bad(path, "'stsd' is empty"))??;
-    if &kind != b"avc1" && &kind != b"avc3" {
-        return Err(bad(
-            path,
-            format!(
-                "video codec '{}' is not H.264 (avc1)",
-                String::from_utf8_lossy(&kind)
-            ),
-        ));
-    }
-    let mut c = Cursor::new(path, "avc1", avc1);
+    // Every visual sample entry starts with the same 78 bytes; the size is at 24..28.
+    let mut c = Cursor::new(path, "visual sample entry", entry);
     c.take(24)?;
     let width = c.u16()? as usize;
     let height = c.u16()? as usize;
     c.take(50)?;
-    let avcc = need(path, c.take(avc1.len() - c.pos)?, b"avcC", "avc1")?;
-    let mut c = Cursor::new(path, "avcC", avcc);
-    c.take(4)?;
-    let nal_length_size = (c.u8()? & 3) as usize + 1;
-    let mut param_sets = Vec::new();
-    let n_sps = c.u8()? & 0x1f;
-    for _ in 0..n_sps {
-        let n = c.u16()? as usize;
-        param_sets.push(c.take(n)?.to_vec());
-    }
-    let n_pps = c.u8()?;
-    for _ in 0..n_pps {
-        let n = c.u16()? as usize;
-        param_sets.push(c.take(n)?.to_vec());
-    }
+    let avc = if &codec == b"avc1" || &codec == b"avc3" {
+        let rest = c.take(entry.len() - c.pos)?;
+        match child(path, rest, b"avcC")? {
+            Some(avcc) => Some(parse_avcc(path, avcc)?),
+            // avc3 may carry its parameter sets in the samples only.
+            None if &codec == b"avc3" => Some(AvcConfig {
+                nal_length_size: 4,
+                param_sets: Vec::new(),
+            }),
+            None => return Err(bad(path, "no 'avcC' box in 'avc1'")),
+        }
+    } else {
+        None
+    };
 
     let mut c = Cursor::new(path, "stts", need(path, stbl, b"stts", "stbl")?);
     c.take(4)?;
@@ -750,6 +841,24 @@ fn parse_video_track(path: &Path, mdia: &[u8], file_len: u64) -> Result<Track, V
     let stts = (0..n)
         .map(|_| Ok((c.u32()?, c.u32()?)))
         .collect::<Result<Vec<_>, VideoError>>()?;
+
+    let ctts = match child(path, stbl, b"ctts")? {
+        Some(ctts) => {
+            let mut c = Cursor::new(path, "ctts", ctts);
+            c.take(4)?;
+            let n = c.count(8)?;
+            (0..n)
+                .map(|_| {
+                    let count = c.u32()?;
+                    // Version 0 offsets are unsigned on paper, but writers store negative ones
+                    // there too; both versions are read as signed, as ffmpeg does.
+                    let offset = i64::from(c.u32()? as i32);
+                    Ok((count, offset))
+                })
+                .collect::<Result<Vec<_>, VideoError>>()?
+        }
+        None => Vec::new(),
+    };
 
     let mut c = Cursor::new(path, "stsz", need(path, stbl, b"stsz", "stbl")?);
     c.take(4)?;
@@ -775,7 +884,12 @@ fn parse_video_track(path: &Path, mdia: &[u8], file_len: u64) -> Result<Track, V
         Some(stss) => {
             let mut c = Cursor::new(path, "stss", stss);
             c.take(4)?;
-            Some(c.u32()? as usize)
+            let n = c.count(4)?;
+            Some(
+                (0..n)
+                    .map(|_| c.u32())
+                    .collect::<Result<Vec<_>, VideoError>>()?,
+            )
         }
         None => None,
     };
@@ -811,32 +925,61 @@ fn parse_video_track(path: &Path, mdia: &[u8], file_len: u64) -> Result<Track, V
     };
 
     Ok(Track {
+        codec,
         width,
         height,
         timescale,
+        movie_timescale: 0,
         stts,
+        ctts,
         sizes,
         sync,
         stsc,
         chunk_offsets,
+        avc,
+        matrix: [0x0001_0000, 0, 0, 0x0001_0000],
+        edits: None,
+    })
+}
+
+fn parse_avcc(path: &Path, avcc: &[u8]) -> Result<AvcConfig, VideoError> {
+    let mut c = Cursor::new(path, "avcC", avcc);
+    c.take(4)?;
+    let nal_length_size = (c.u8()? & 3) as usize + 1;
+    let mut param_sets = Vec::new();
+    let n_sps = c.u8()? & 0x1f;
+    for _ in 0..n_sps {
+        let n = c.u16()? as usize;
+        param_sets.push(c.take(n)?.to_vec());
+    }
+    let n_pps = c.u8()?;
+    for _ in 0..n_pps {
+        let n = c.u16()? as usize;
+        param_sets.push(c.take(n)?.to_vec());
+    }
+    Ok(AvcConfig {
         nal_length_size,
         param_sets,
     })
 }
 
 impl Track {
-    fn info(&self, path: &Path) -> Result<Mp4Info, VideoError> {
-        let frames = self.sizes.len();
-        let stts_frames = self
-            .stts
-            .iter()
-            .fold(0u64, |a, &(n, _)| a.saturating_add(u64::from(n)));
-        if stts_frames != frames as u64 {
-            return Err(bad(
+    /// The H.264 configuration, or a format error naming the codec the track holds.
+    pub(crate) fn require_avc(&self, path: &Path) -> Result<&AvcConfig, VideoError> {
+        self.avc.as_ref().ok_or_else(|| {
+            bad(
                 path,
-                format!("'stts' times {stts_frames} samples but 'stsz' lists {frames}"),
-            ));
-        }
+                format!(
+                    "video codec '{}' is not H.264 (avc1)",
+                    String::from_utf8_lossy(&self.codec)
+                ),
+            )
+        })
+    }
+
+    fn info(&self, path: &Path) -> Result<Mp4Info, VideoError> {
+        self.require_avc(path)?;
+        let frames = self.check_timing(path)?;
         let duration = self.stts.iter().fold(0u64, |a, &(n, d)| {
             a.saturating_add(u64::from(n) * u64::from(d))
         });
@@ -850,12 +993,62 @@ impl Track {
             height: self.height,
             frames,
             fps,
-            keyframes: self.sync.unwrap_or(frames),
+            keyframes: self.sync.as_ref().map_or(frames, Vec::len),
         })
     }
 
+    /// Checks that the time tables cover exactly the samples; returns the sample count.
+    pub(crate) fn check_timing(&self, path: &Path) -> Result<usize, VideoError> {
+        let frames = self.sizes.len();
+        let stts_frames = self
+            .stts
+            .iter()
+            .fold(0u64, |a, &(n, _)| a.saturating_add(u64::from(n)));
+        if stts_frames != frames as u64 {
+            return Err(bad(
+                path,
+                format!("'stts' times {stts_frames} samples but 'stsz' lists {frames}"),
+            ));
+        }
+        if !self.ctts.is_empty() {
+            let ctts_frames = self
+                .ctts
+                .iter()
+                .fold(0u64, |a, &(n, _)| a.saturating_add(u64::from(n)));
+            if ctts_frames != frames as u64 {
+                return Err(bad(
+                    path,
+                    format!("'ctts' covers {ctts_frames} samples but 'stsz' lists {frames}"),
+                ));
+            }
+        }
+        Ok(frames)
+    }
+
+    /// Composition time of every sample (decode order), in track timescale ticks.
+    pub(crate) fn composition_times(&self) -> Vec<i64> {
+        let mut out = Vec::with_capacity(self.sizes.len());
+        let mut dts = 0i64;
+        for &(n, delta) in &self.stts {
+            for _ in 0..n {
+                out.push(dts);
+                dts = dts.saturating_add(i64::from(delta));
+            }
+        }
+        let mut i = 0usize;
+        for &(n, offset) in &self.ctts {
+            for _ in 0..n {
+                if let Some(t) = out.get_mut(i) {
+                    *t = t.saturating_add(offset);
+                }
+                i += 1;
+            }
+        }
+        out
+    }
+
     /// File offset of every sample, from the chunk table and the sample-to-chunk runs.
-    fn sample_offsets(&self, path: &Path) -> Result<Vec<u64>, VideoError> {
+    pub(crate) fn sample_offsets(&self, path: &Path) -> Result<Vec<u64>, VideoError> {
         let mut offsets = Vec::with_capacity(self.sizes.len());
         let mut sample = 0usize;
         for (ci, &chunk_start) in self.chunk_offsets.iter().enumerate() {
@@ -890,96 +1083,86 @@ impl Track {
     }
 }
 
-/// Size, frame count, frame rate and keyframe count of the first video track of an mp4.
-pub fn read_mp4_info(path: &Path) -> Result<Mp4Info, VideoError> {
-    let mut file = File::open(path).map_err(|e| VideoError::io(path, e))?;
-    let moov = read_moov(path, &mut file)?;
-    let file_len = file.metadata().map_err(|e| VideoError::io(path, e))?.len();
-    read_track(path, &moov, file_len)?.info(path)
+/// Reads the samples of an H.264 track one by one as Annex-B access units (start codes instead
+/// of length prefixes), checking every sample lies inside the file.
+pub(crate) struct SampleReader {
+    path: PathBuf,
+    file: File,
+    file_len: u64,
+    offsets: Vec<u64>,
+    sizes: Vec<u64>,
+    nal_length_size: usize,
+    next: usize,
+    sample: Vec<u8>,
 }
 
-/// Decodes every frame of the first video track (H.264, via OpenH264) to RGB u8 HWC of the
-/// coded size.
-pub fn decode_mp4(path: &Path) -> Result<Vec<Vec<u8>>, VideoError> {
-    use openh264::decoder::{Decoder, DecoderConfig};
-    use openh264::formats::YUVSource;
-    use openh264::OpenH264API;
-
-    let mut file = File::open(path).map_err(|e| VideoError::io(path, e))?;
-    let file_len = file.metadata().map_err(|e| VideoError::io(path, e))?.len();
-    let moov = read_moov(path, &mut file)?;
-    let track = read_track(path, &moov, file_len)?;
-    let offsets = track.sample_offsets(path)?;
-
-    let mut decoder = Decoder::with_api_config(OpenH264API::from_source(), DecoderConfig::new())
-        .map_err(|e| VideoError::Decode(format!("OpenH264 setup: {e}")))?;
-    let mut frames = Vec::with_capacity(track.sizes.len());
-    let to_rgb = |yuv: &openh264::decoder::DecodedYUV<'_>| -> Result<Vec<u8>, VideoError> {
-        let (w, h) = yuv.dimensions();
-        let (ys, us, vs) = yuv.strides();
-        let fits = |plane: &[u8], stride: usize, rows: usize, cols: usize| {
-            rows == 0 || (stride >= cols && plane.len() >= (rows - 1) * stride + cols)
-        };
-        let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
-        if us != vs
-            || !fits(yuv.y(), ys, h, w)
-            || !fits(yuv.u(), us, ch, cw)
-            || !fits(yuv.v(), vs, ch, cw)
-        {
-            return Err(VideoError::Decode(format!(
-                "{}: decoder returned inconsistent planes for a {w}x{h} picture",
-                path.display()
-            )));
-        }
-        Ok(i420_to_rgb(&I420 {
-            y: yuv.y(),
-            u: yuv.u(),
-            v: yuv.v(),
-            y_stride: ys,
-            uv_stride: us,
-            width: w,
-            height: h,
-        }))
-    };
-
-    let dec_err = |i: Option<usize>, e: openh264::Error| {
-        VideoError::Decode(match i {
-            Some(i) => format!("{} sample {i}: {e}", path.display()),
-            None => format!("{} parameter sets: {e}", path.display()),
+impl SampleReader {
+    pub(crate) fn new(path: &Path, file: File, track: &Track) -> Result<Self, VideoError> {
+        let avc = track.require_avc(path)?;
+        let file_len = file.metadata().map_err(|e| VideoError::io(path, e))?.len();
+        Ok(SampleReader {
+            path: path.to_path_buf(),
+            file,
+            file_len,
+            offsets: track.sample_offsets(path)?,
+            sizes: track.sizes.clone(),
+            nal_length_size: avc.nal_length_size,
+            next: 0,
+            sample: Vec::new(),
         })
-    };
-    let mut annexb = Vec::new();
-    for ps in &track.param_sets {
-        if !matches!(ps.first().map(|h| h & 0x1f), Some(NAL_SPS | NAL_PPS)) {
+    }
+
+    pub(crate) fn len(&self) -> usize {
+        self.sizes.len()
+    }
+
+    /// Continues from sample `i` (0-based).
+    pub(crate) fn seek_to(&mut self, i: usize) {
+        self.next = i.min(self.sizes.len());
+    }
+
+    /// The next sample's NAL units, appended to `annexb` (cleared first) with 4-byte start
+    /// codes; `None` after the last sample.
+    pub(crate) fn next_sample(
+        &mut self,
+        annexb: &mut Vec<u8>,
+    ) -> Option<Result<usize, VideoError>> {
+        let i = self.next;
+        let (&offset, &size) = (self.offsets.get(i)?, self.sizes.get(i)?);
+        self.next += 1;
+        Some(self.read(i, offset, size, annexb).map(|()| i))
+    }
+
+    fn read(
+        &mut self,
+        i: usize,
+        offset: u64,
+        size: u64,
+        annexb: &mut Vec<u8>,
+    ) -> Result<(), VideoError> {
+        let path = &self.path;
+        if offset
+            .checked_add(size)
+            .is_none_or(|end| end > self.file_len)
+        {
             return Err(bad(
                 path,
-                "'avcC' holds a NAL unit that is not an SPS or PPS",
+                format!(
+                    "sample {i} ({size} bytes at {offset}) lies past the end of the file: the file \
+                     is truncated"
+                ),
             ));
         }
-        annexb.extend_from_slice(&[0, 0, 0, 1]);
-        annexb.extend_from_slice(ps);
-    }
-    if !annexb.is_empty() {
-        if let Some(yuv) = decoder.decode(&annexb).map_err(|e| dec_err(None, e))? {
-            frames.push(to_rgb(&yuv)?);
-        }
-    }
-    let mut sample = Vec::new();
-    for (i, (&offset, &size)) in offsets.iter().zip(&track.sizes).enumerate() {
-        if offset.checked_add(size).is_none_or(|end| end > file_len) {
-            return Err(bad(
-                path,
-                format!("sample {i} ({size} bytes at {offset}) lies past the end of the file"),
-            ));
-        }
-        sample.resize(size as usize, 0);
-        file.seek(SeekFrom::Start(offset))
+        self.sample.resize(size as usize, 0);
+        self.file
+            .seek(SeekFrom::Start(offset))
             .map_err(|e| VideoError::io(path, e))?;
-        file.read_exact(&mut sample)
+        self.file
+            .read_exact(&mut self.sample)
             .map_err(|e| VideoError::io(path, e))?;
         annexb.clear();
-        let mut rest = &sample[..];
-        let ls = track.nal_length_size;
+        let mut rest = &self.sample[..];
+        let ls = self.nal_length_size;
         while !rest.is_empty() {
             if rest.len() < ls {
                 return Err(bad(path, format!("sample {i}: truncated NAL length")));
@@ -998,13 +1181,148 @@ pub fn decode_mp4(path: &Path) -> Result<Vec<Vec<u8>>, VideoError> {
             annexb.extend_from_slice(&rest[..n]);
             rest = &rest[n..];
         }
-        if let Some(yuv) = decoder.decode(&annexb).map_err(|e| dec_err(Some(i), e))? {
-            frames.push(to_rgb(&yuv)?);
+        Ok(())
+    }
+}
+
+/// The `avcC` parameter sets as one Annex-B buffer (what the decoder is fed first).
+pub(crate) fn param_sets_annexb(path: &Path, avc: &AvcConfig) -> Result<Vec<u8>, VideoError> {
+    let mut annexb = Vec::new();
+    for ps in &avc.param_sets {
+        if !matches!(ps.first().map(|h| h & 0x1f), Some(NAL_SPS | NAL_PPS)) {
+            return Err(bad(
+                path,
+                "'avcC' holds a NAL unit that is not an SPS or PPS",
+            ));
+        }
+        annexb.extend_from_slice(&[0, 0, 0, 1]);
+        annexb.extend_from_slice(ps);
+    }
+    Ok(annexb)
+}
+
+/// A decoded OpenH264 picture as RGB u8 HWC.
+fn yuv_to_rgb(
+    path: &Path,
+    yuv: &openh264::decoder::DecodedYUV<'_>,
+    matrix: crate::yuv::YuvMatrix,
+) -> Result<(usize, usize, Vec<u8>), VideoError> {
+    use openh264::formats::YUVSource;
+    let (w, h) = yuv.dimensions();
+    let (ys, us, vs) = yuv.strides();
+    let fits = |plane: &[u8], stride: usize, rows: usize, cols: usize| {
+        rows == 0 || (stride >= cols && plane.len() >= (rows - 1) * stride + cols)
+    };
+    let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
+    if us != vs
+        || !fits(yuv.y(), ys, h, w)
+        || !fits(yuv.u(), us, ch, cw)
+        || !fits(yuv.v(), vs, ch, cw)
+    {
+        return Err(VideoError::Decode(format!(
+            "{}: decoder returned inconsistent planes for a {w}x{h} picture",
+            path.display()
+        )));
+    }
+    let rgb = i420_to_rgb_with(
+        &I420 {
+            y: yuv.y(),
+            u: yuv.u(),
+            v: yuv.v(),
+            y_stride: ys,
+            uv_stride: us,
+            width: w,
+            height: h,
+        },
+        matrix,
+    );
+    Ok((w, h, rgb))
+}
+
+/// An OpenH264 decoder fed one access unit at a time; pictures come out as RGB.
+pub(crate) struct H264Decoder {
+    path: PathBuf,
+    decoder: openh264::decoder::Decoder,
+    matrix: crate::yuv::YuvMatrix,
+}
+
+/// A decoded picture: width, height, RGB u8 HWC.
+pub(crate) type Picture = (usize, usize, Vec<u8>);
+
+impl H264Decoder {
+    pub(crate) fn new(path: &Path, matrix: crate::yuv::YuvMatrix) -> Result<Self, VideoError> {
+        use openh264::decoder::{Decoder, DecoderConfig};
+        use openh264::OpenH264API;
+        let decoder = Decoder::with_api_config(OpenH264API::from_source(), DecoderConfig::new())
+            .map_err(|e| VideoError::Decode(format!("OpenH264 setup: {e}")))?;
+        Ok(H264Decoder {
+            path: path.to_path_buf(),
+            decoder,
+            matrix,
+        })
+    }
+
+    /// Decodes one access unit (`sample` names it in errors; `None` for the parameter sets).
+    pub(crate) fn decode(
+        &mut self,
+        annexb: &[u8],
+        sample: Option<usize>,
+    ) -> Result<Option<Picture>, VideoError> {
+        let path = &self.path;
+        let yuv = self.decoder.decode(annexb).map_err(|e| {
+            VideoError::Decode(match sample {
+                Some(i) => format!("{} sample {i}: {e}", path.display()),
+                None => format!("{} parameter sets: {e}", path.display()),
+            })
+        })?;
+        yuv.map(|yuv| yuv_to_rgb(path, &yuv, self.matrix))
+            .transpose()
+    }
+
+    /// The pictures still buffered after the last access unit.
+    pub(crate) fn flush(&mut self) -> Result<Vec<Picture>, VideoError> {
+        let path = &self.path;
+        let matrix = self.matrix;
+        let rest = self
+            .decoder
+            .flush_remaining()
+            .map_err(|e| VideoError::Decode(format!("{} flushing: {e}", path.display())))?;
+        rest.iter()
+            .map(|yuv| yuv_to_rgb(path, yuv, matrix))
+            .collect()
+    }
+}
+
+/// Size, frame count, frame rate and keyframe count of the first video track of an mp4.
+pub fn read_mp4_info(path: &Path) -> Result<Mp4Info, VideoError> {
+    let (_, track) = open_track(path)?;
+    track.info(path)
+}
+
+/// Decodes every frame of the first video track (H.264, via OpenH264) to RGB u8 HWC of the
+/// coded size, in decode order, all in memory: a check for the files this crate writes. Other
+/// videos are read with [`crate::read::VideoReader`], which streams, checks the stream is one
+/// OpenH264 decodes correctly, and uses ffmpeg when it is not.
+pub fn decode_mp4(path: &Path) -> Result<Vec<Vec<u8>>, VideoError> {
+    let (file, track) = open_track(path)?;
+    let avc = track.require_avc(path)?;
+    let mut samples = SampleReader::new(path, file, &track)?;
+    let mut decoder = H264Decoder::new(path, crate::yuv::YuvMatrix::Bt601)?;
+    let mut frames = Vec::with_capacity(track.sizes.len());
+    let annexb = param_sets_annexb(path, avc)?;
+    if !annexb.is_empty() {
+        if let Some((_, _, rgb)) = decoder.decode(&annexb, None)? {
+            frames.push(rgb);
         }
     }
-    for yuv in decoder.flush_remaining().map_err(|e| dec_err(None, e))? {
-        frames.push(to_rgb(&yuv)?);
+    let mut annexb = Vec::new();
+    while let Some(i) = samples.next_sample(&mut annexb) {
+        let i = i?;
+        if let Some((_, _, rgb)) = decoder.decode(&annexb, Some(i))? {
+            frames.push(rgb);
+        }
     }
+    frames.extend(decoder.flush()?.into_iter().map(|(_, _, rgb)| rgb));
     Ok(frames)
 }
 

@@ -10,15 +10,22 @@ pub(crate) struct PngDirSink {
     width: u32,
     height: u32,
     tmp: TempPath,
+    /// Zero-padded digits in the frame names.
+    digits: usize,
 }
 
 /// The file name of frame `index` (0-based) in a PNG folder.
-pub(crate) fn frame_name(index: usize) -> String {
-    format!("frame_{index:05}.png")
+pub(crate) fn frame_name(index: usize, digits: usize) -> String {
+    format!("frame_{index:0digits$}.png")
 }
 
 impl PngDirSink {
-    pub(crate) fn create(path: &Path, width: usize, height: usize) -> Result<Self, VideoError> {
+    pub(crate) fn create(
+        path: &Path,
+        width: usize,
+        height: usize,
+        digits: usize,
+    ) -> Result<Self, VideoError> {
         let too_large = || VideoError::BadSize {
             width,
             height,
@@ -40,11 +47,12 @@ impl PngDirSink {
             width: w,
             height: h,
             tmp: TempPath::dir(tmp_path),
+            digits,
         })
     }
 
     pub(crate) fn push(&mut self, rgb: &[u8], index: usize) -> Result<(), VideoError> {
-        let file = self.tmp.path().join(frame_name(index));
+        let file = self.tmp.path().join(frame_name(index, self.digits));
         image::save_buffer_with_format(
             &file,
             rgb,
@@ -57,6 +65,16 @@ impl PngDirSink {
             image::ImageError::IoError(io) => VideoError::io(&file, io),
             other => VideoError::Encode(format!("{}: {other}", file.display())),
         })
+    }
+
+    pub(crate) fn target(&self) -> &Path {
+        &self.target
+    }
+
+    /// Adds a file beside the frames (written now, moved into place with them).
+    pub(crate) fn add_file(&self, name: &str, bytes: &[u8]) -> Result<(), VideoError> {
+        let file = self.tmp.path().join(name);
+        std::fs::write(&file, bytes).map_err(|e| VideoError::io(&file, e))
     }
 
     pub(crate) fn finish(self) -> Result<(), VideoError> {

@@ -5,6 +5,8 @@ use std::path::{Path, PathBuf};
 
 use gagavatar_video::{VideoOptions, VideoWriter};
 
+pub mod fixtures;
+
 /// A fresh empty folder for one test under cargo's per-target scratch space.
 pub fn scratch(name: &str) -> PathBuf {
     let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("video-{name}"));

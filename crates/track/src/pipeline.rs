@@ -1,0 +1,275 @@
+//! Observations in, release records out: the stages tied together.
+//!
+//! Photo: landmarks -> head box -> crop window -> the 70 targets in crop pixels -> photo fit ->
+//! record. Video: head boxes of all frames -> smoothed windows -> targets -> one shape on
+//! keyframes, warm-started frame fits -> gaps filled -> smoothing -> records. The images
+//! themselves are cropped separately ([`crate::crop::crop_image`] with each frame's window), so
+//! a caller can decode a video twice instead of holding it in memory.
+
+use gagavatar_data::records::{EXPRESSION_COMPONENTS, SHAPE_COMPONENTS};
+use gagavatar_flame::TrackedFrame;
+
+use crate::crop::{smooth_head_boxes, CropWindow, FramingCalibration, HeadBox};
+use crate::error::{input, Result, TrackError};
+use crate::fit::{fit_photo, fit_sequence, reproject, FitOptions, FrameState, LandmarkTargets};
+use crate::mapping::to_70;
+use crate::observation::Observation;
+use crate::rig::{LandmarkRig, N_LANDMARKS};
+use crate::smooth::{interpolate_states, smooth_states, Smoothing};
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrackOptions {
+    pub fit: FitOptions,
+    pub framing: FramingCalibration,
+    pub smoothing: Smoothing,
+    /// Whittaker strength on a video's head boxes (centre, log side). 1e4 halves the power at a
+    /// period of about 64 frames: a nearly static window that still follows a moving head.
+    pub window_smoothing: f64,
+}
+
+impl Default for TrackOptions {
+    fn default() -> Self {
+        Self {
+            fit: FitOptions::default(),
+            framing: FramingCalibration::default(),
+            smoothing: Smoothing::default(),
+            window_smoothing: 1e4,
+        }
+    }
+}
+
+/// One tracked frame, with what `track.json` reports about it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameTrack {
+    /// The release record (for a video: the smoothed one, as in `smoothed.pkl`).
+    pub record: TrackedFrame,
+    /// Width and height of the frame.
+    pub image_size: [u32; 2],
+    /// The crop window in frame pixels.
+    pub window: CropWindow,
+    /// The head box the window was made from (frame pixels; for video the smoothed one).
+    pub head_box: HeadBox,
+    /// The 70 detected target points in frame pixels (`None` entries: not detected, e.g. the
+    /// pupils of a 468-point mesh); `None` when no face was found in the frame.
+    pub detected: Option<Vec<Option<[f64; 2]>>>,
+    /// The fitted FLAME's 70 landmarks reprojected into frame pixels (`None` behind the camera).
+    pub reprojected: Vec<Option<[f64; 2]>>,
+    /// Whether a face was found; frames without one are filled from their neighbours.
+    pub face_found: bool,
+    /// RMS landmark error of the raw fit in 512-crop pixels (`None` for filled frames).
+    pub fit_rms_px: Option<f64>,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrackedPhoto {
+    pub frame: FrameTrack,
+    /// The fitted shape code (the rig's component count).
+    pub shape: Vec<f64>,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrackedVideo {
+    /// Per frame, with smoothed records (`smoothed.pkl`).
+    pub frames: Vec<FrameTrack>,
+    /// Per frame, the unsmoothed records (`optim.pkl`; filled frames interpolated).
+    pub raw_records: Vec<TrackedFrame>,
+    pub shape: Vec<f64>,
+    /// Frames the shape was solved on.
+    pub keyframes: Vec<usize>,
+}
+
+/// The release record of a fitted state (global pose zero, jaw in `posecode[3..6]`), codes
+/// zero-padded to the release's 300 / 100 components.
+pub fn record_of(shape: &[f64], s: &FrameState, bbox: [f64; 4]) -> TrackedFrame {
+    let pad = |v: &[f64], n: usize| {
+        let mut v = v.to_vec();
+        if v.len() < n {
+            v.resize(n, 0.0);
+        }
+        v
+    };
+    TrackedFrame {
+        shapecode: pad(shape, SHAPE_COMPONENTS),
+        expcode: pad(&s.expression, EXPRESSION_COMPONENTS),
+        posecode: vec![0.0, 0.0, 0.0, s.jaw[0], s.jaw[1], s.jaw[2]],
+        eyecode: s.eyes.to_vec(),
+        transform_matrix: Some(s.camera.matrix()),
+        bbox: Some(bbox),
+    }
+}
+
+/// The 70 points of a frame in frame pixels, `None` where not detected.
+type Detected = Vec<Option<[f64; 2]>>;
+
+/// The fit's targets for a frame's landmarks seen through a crop window.
+fn targets_in_crop(
+    obs: &Observation,
+    window: &CropWindow,
+    o: &FitOptions,
+) -> Result<Option<(LandmarkTargets, Detected)>> {
+    let Some(lm) = &obs.landmarks else {
+        return Ok(None);
+    };
+    let (pts, present) = to_70(lm);
+    let base = o.landmark_weights.per_landmark();
+    let mut crop_pts = [[0.0; 2]; N_LANDMARKS];
+    let mut weights = [0.0; N_LANDMARKS];
+    let mut detected = Vec::with_capacity(N_LANDMARKS);
+    for k in 0..N_LANDMARKS {
+        if present[k] {
+            crop_pts[k] = window.frame_to_crop(pts[k]);
+            weights[k] = base[k];
+            detected.push(Some(pts[k]));
+        } else {
+            detected.push(None);
+        }
+    }
+    Ok(Some((LandmarkTargets::new(crop_pts, weights)?, detected)))
+}
+
+fn reprojected_in_frame(
+    rig: &LandmarkRig,
+    shape: &[f64],
+    s: &FrameState,
+    window: &CropWindow,
+) -> Result<Vec<Option<[f64; 2]>>> {
+    Ok(reproject(rig, shape, s)?
+        .into_iter()
+        .map(|p| p.map(|p| window.crop_to_frame(p)))
+        .collect())
+}
+
+/// Tracks a photo. `label` names it in the "no face found" error.
+pub fn track_photo(
+    obs: &Observation,
+    rig: &LandmarkRig,
+    opts: &TrackOptions,
+    label: &str,
+) -> Result<TrackedPhoto> {
+    opts.fit.validate()?;
+    let Some(lm) = &obs.landmarks else {
+        return Err(TrackError::NoFace {
+            name: label.to_owned(),
+        });
+    };
+    let head = opts.framing.head_box(lm)?;
+    let window = CropWindow::from_head_box(&head)?;
+    let (targets, detected) =
+        targets_in_crop(obs, &window, &opts.fit)?.ok_or_else(|| input("photo", "no landmarks"))?;
+    let fit = fit_photo(rig, &targets, &opts.fit)?;
+    let bbox = window.normalized_box(&head);
+    let frame = FrameTrack {
+        record: record_of(&fit.shape, &fit.frame.state, bbox),
+        image_size: [obs.width, obs.height],
+        window,
+        head_box: head,
+        detected: Some(detected),
+        reprojected: reprojected_in_frame(rig, &fit.shape, &fit.frame.state, &window)?,
+        face_found: true,
+        fit_rms_px: Some(fit.frame.rms_px),
+    };
+    Ok(TrackedPhoto {
+        frame,
+        shape: fit.shape,
+    })
+}
+
+/// Tracks a video's frames (all of them are needed before the first window is final).
+/// `progress(done, total)` is called as frames are fitted. `label` names the video in the "no
+/// face found" error.
+pub fn track_video(
+    observations: impl IntoIterator<Item = Observation>,
+    rig: &LandmarkRig,
+    opts: &TrackOptions,
+    label: &str,
+    mut progress: impl FnMut(usize, usize),
+) -> Result<TrackedVideo> {
+    opts.fit.validate()?;
+    if !(opts.window_smoothing.is_finite() && opts.window_smoothing >= 0.0) {
+        return Err(input(
+            "track options",
+            format!("window_smoothing = {}", opts.window_smoothing),
+        ));
+    }
+    let obs: Vec<Observation> = observations.into_iter().collect();
+    if obs.is_empty() {
+        return Err(input("video", "no frames"));
+    }
+    let (w0, h0) = (obs[0].width, obs[0].height);
+    if let Some(i) = obs.iter().position(|o| (o.width, o.height) != (w0, h0)) {
+        return Err(input(
+            "video",
+            format!(
+                "frame {i} is {}x{}, frame 0 is {w0}x{h0}",
+                obs[i].width, obs[i].height
+            ),
+        ));
+    }
+    let boxes: Vec<Option<HeadBox>> = obs
+        .iter()
+        .map(|o| {
+            o.landmarks
+                .as_ref()
+                .map(|lm| opts.framing.head_box(lm))
+                .transpose()
+        })
+        .collect::<Result<_>>()?;
+    if boxes.iter().all(Option::is_none) {
+        return Err(TrackError::NoFace {
+            name: label.to_owned(),
+        });
+    }
+    let smooth_boxes = smooth_head_boxes(&boxes, opts.window_smoothing)?;
+    let windows: Vec<CropWindow> = smooth_boxes
+        .iter()
+        .map(CropWindow::from_head_box)
+        .collect::<Result<_>>()?;
+    let mut targets = Vec::with_capacity(obs.len());
+    let mut detected = Vec::with_capacity(obs.len());
+    for (o, w) in obs.iter().zip(&windows) {
+        match targets_in_crop(o, w, &opts.fit)? {
+            Some((t, d)) => {
+                targets.push(Some(t));
+                detected.push(Some(d));
+            }
+            None => {
+                targets.push(None);
+                detected.push(None);
+            }
+        }
+    }
+    let total = obs.len();
+    let seq = fit_sequence(rig, &targets, &opts.fit, |i| progress(i + 1, total))?;
+    let observed: Vec<bool> = seq.frames.iter().map(Option::is_some).collect();
+    let raw_states: Vec<Option<FrameState>> = seq
+        .frames
+        .iter()
+        .map(|f| f.as_ref().map(|f| f.state.clone()))
+        .collect();
+    let filled = interpolate_states(&raw_states)?;
+    let smoothed = smooth_states(&filled, &observed, &opts.smoothing)?;
+    let mut frames = Vec::with_capacity(total);
+    let mut raw_records = Vec::with_capacity(total);
+    for i in 0..total {
+        let w = &windows[i];
+        // The record's box: the frame's own head box (smoothed one for filled frames).
+        let bbox = w.normalized_box(boxes[i].as_ref().unwrap_or(&smooth_boxes[i]));
+        raw_records.push(record_of(&seq.shape, &filled[i], bbox));
+        frames.push(FrameTrack {
+            record: record_of(&seq.shape, &smoothed[i], bbox),
+            image_size: [obs[i].width, obs[i].height],
+            window: *w,
+            head_box: smooth_boxes[i],
+            detected: detected[i].clone(),
+            reprojected: reprojected_in_frame(rig, &seq.shape, &smoothed[i], w)?,
+            face_found: observed[i],
+            fit_rms_px: seq.frames[i].as_ref().map(|f| f.rms_px),
+        });
+    }
+    Ok(TrackedVideo {
+        frames,
+        raw_records,
+        shape: seq.shape,
+        keyframes: seq.keyframes,
+    })
+}

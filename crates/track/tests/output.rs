@@ -1,0 +1,196 @@
+//! The tracked folder: written in the release layout, read back by the data crate (the
+//! project's release-format reader, whose own tests check it against Python), all-or-nothing.
+
+mod common;
+
+use common::*;
+use gagavatar_data::records::read_records;
+use gagavatar_data::{DriverSequence, LmdbReader};
+use gagavatar_track::crop::crop_image;
+use gagavatar_track::output::{
+    read_track_json, sanitize_name, write_photo, write_video, IMAGES_DIR, OPTIM_FILE,
+    SMOOTHED_FILE, TRACK_JSON,
+};
+use gagavatar_track::pipeline::{track_photo, track_video, TrackOptions};
+use gagavatar_track::{Observation, TrackError, TrackedPhoto, TrackedVideo};
+use image::RgbImage;
+
+fn photo() -> TrackedPhoto {
+    let rig = rig();
+    let (shape, st) = truth(&rig, 1, 1);
+    let pts = exact_points(&rig, &shape, &st).map(|p| [p[0] * 1.2 + 40.0, p[1] * 1.2 + 10.0]);
+    track_photo(
+        &observation(&pts, 700, 640),
+        &rig,
+        &TrackOptions::default(),
+        "p",
+    )
+    .unwrap()
+}
+
+fn video(n: usize) -> TrackedVideo {
+    let rig = rig();
+    let obs: Vec<Observation> = (0..n)
+        .map(|i| {
+            if i == 2 {
+                return Observation::no_face(700, 640).unwrap();
+            }
+            let (shape, st) = truth(&rig, 1, i + 1);
+            let pts = exact_points(&rig, &shape, &st).map(|p| [p[0] * 1.2 + 40.0, p[1] * 1.2]);
+            observation(&pts, 700, 640)
+        })
+        .collect();
+    track_video(obs, &rig, &TrackOptions::default(), "v", |_, _| {}).unwrap()
+}
+
+fn frame_image() -> RgbImage {
+    RgbImage::from_fn(700, 640, |x, y| {
+        image::Rgb([(x % 256) as u8, (y % 256) as u8, 128])
+    })
+}
+
+fn same_record(a: &gagavatar_flame::TrackedFrame, b: &gagavatar_flame::TrackedFrame) {
+    let pad = |v: &[f64], n: usize| {
+        let mut v = v.to_vec();
+        v.resize(n, 0.0);
+        v
+    };
+    let close = |x: &[f64], y: &[f64], what: &str| {
+        assert_eq!(x.len(), y.len(), "{what}");
+        for (i, (p, q)) in x.iter().zip(y).enumerate() {
+            // float32 storage.
+            assert!(
+                (p - q).abs() <= 1e-6 * (1.0 + p.abs()),
+                "{what}[{i}]: {p} vs {q}"
+            );
+        }
+    };
+    close(&pad(&a.shapecode, 300), &b.shapecode, "shapecode");
+    close(&pad(&a.expcode, 100), &b.expcode, "expcode");
+    close(&a.posecode, &b.posecode, "posecode");
+    close(&a.eyecode, &b.eyecode, "eyecode");
+    close(&a.bbox.unwrap(), &b.bbox.unwrap(), "bbox");
+    let f = |m: [[f64; 4]; 3]| m.iter().flatten().copied().collect::<Vec<_>>();
+    close(
+        &f(a.transform_matrix.unwrap()),
+        &f(b.transform_matrix.unwrap()),
+        "transform",
+    );
+}
+
+#[test]
+fn photo_folder_reads_back() {
+    let t = TempDir::new("photo");
+    let dir = t.0.join("out");
+    let p = photo();
+    let crop = crop_image(&frame_image(), &p.frame.window).unwrap();
+    write_photo(&dir, "my photo_1", &p, &crop).unwrap();
+    let key = "my-photo-1_0";
+    let recs = read_records(&dir.join(OPTIM_FILE)).unwrap();
+    assert_eq!(recs.keys().collect::<Vec<_>>(), vec![key]);
+    same_record(&p.frame.record, &recs[key]);
+    let lmdb = LmdbReader::open(&dir.join(IMAGES_DIR)).unwrap();
+    let jpeg = lmdb.get(key.as_bytes()).unwrap().unwrap();
+    let img = image::load_from_memory(&jpeg).unwrap().to_rgb8();
+    assert_eq!(img.dimensions(), (512, 512));
+    let tj = read_track_json(&dir.join(TRACK_JSON)).unwrap();
+    assert_eq!((tj.kind.as_str(), tj.frames.len()), ("photo", 1));
+    assert_eq!(tj.frames[0].window, p.frame.window.as_array());
+    assert_eq!(tj.frames[0].landmarks_fitted.len(), 70);
+    same_record(&p.frame.record, &tj.frames[0].record.to_record());
+    assert!(!dir.join(SMOOTHED_FILE).exists());
+    // The project's own driver reader opens it as a tracked folder.
+    let d = DriverSequence::open(&dir).unwrap();
+    assert_eq!(d.frames.len(), 1);
+    assert!(d.has_images());
+}
+
+#[test]
+fn video_folder_reads_back_and_is_all_or_nothing() {
+    let t = TempDir::new("video");
+    let dir = t.0.join("clip");
+    let v = video(5);
+    let img = frame_image();
+    let crops = v.frames.iter().map(|f| crop_image(&img, &f.window));
+    write_video(&dir, "clip", &v, crops).unwrap();
+    let optim = read_records(&dir.join(OPTIM_FILE)).unwrap();
+    let smoothed = read_records(&dir.join(SMOOTHED_FILE)).unwrap();
+    assert_eq!(optim.len(), 5);
+    assert_eq!(smoothed.len(), 5);
+    for i in 0..5 {
+        let k = format!("clip_{i}");
+        same_record(&v.raw_records[i], &optim[&k]);
+        same_record(&v.frames[i].record, &smoothed[&k]);
+    }
+    let lmdb = LmdbReader::open(&dir.join(IMAGES_DIR)).unwrap();
+    assert_eq!(lmdb.len(), 5);
+    let tj = read_track_json(&dir.join(TRACK_JSON)).unwrap();
+    assert_eq!(tj.frames.len(), 5);
+    assert!(!tj.frames[2].face_found && tj.frames[2].landmarks_detected.is_none());
+    let d = DriverSequence::open(&dir).unwrap();
+    assert_eq!(d.frames.len(), 5);
+
+    // Rewriting over our own folder is allowed; a failing crop source leaves the old one.
+    let bad = (0..5).map(|i| {
+        if i == 3 {
+            Err(TrackError::Input {
+                what: "decoder",
+                reason: "broken frame".into(),
+            })
+        } else {
+            Ok(RgbImage::new(512, 512))
+        }
+    });
+    let e = write_video(&dir, "clip", &v, bad).unwrap_err();
+    assert!(e.to_string().contains("broken frame"), "{e}");
+    assert_eq!(LmdbReader::open(&dir.join(IMAGES_DIR)).unwrap().len(), 5);
+    // Too few crops, or a wrong size: refused, nothing written.
+    let fresh = t.0.join("fresh");
+    let few = (0..4).map(|_| Ok(RgbImage::new(512, 512)));
+    assert!(write_video(&fresh, "clip", &v, few).is_err());
+    let small = (0..5).map(|_| Ok(RgbImage::new(256, 256)));
+    assert!(write_video(&fresh, "clip", &v, small).is_err());
+    assert!(!fresh.exists());
+    // Only leftovers are the finished folders.
+    let names: Vec<String> = std::fs::read_dir(&t.0)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(names, vec!["clip".to_string()], "{names:?}");
+}
+
+#[test]
+fn a_folder_with_other_files_is_not_replaced() {
+    let t = TempDir::new("refuse");
+    std::fs::write(t.0.join("notes.txt"), b"mine").unwrap();
+    let p = photo();
+    let e = write_photo(&t.0, "p", &p, &RgbImage::new(512, 512)).unwrap_err();
+    assert!(e.to_string().contains("notes.txt"), "{e}");
+    assert_eq!(std::fs::read(t.0.join("notes.txt")).unwrap(), b"mine");
+}
+
+#[test]
+fn names_are_safe_for_the_release_loaders() {
+    assert_eq!(sanitize_name("obama"), "obama");
+    assert_eq!(sanitize_name("my_video 2.mp4"), "my-video-2-mp4");
+    assert_eq!(sanitize_name("été"), "-t-");
+    assert_eq!(sanitize_name(""), "track");
+}
+
+/// Writes a tracked photo and a tracked video (synthetic heads, a patterned frame) under
+/// `$GAGAVATAR_TRACK_SAMPLE_DIR` for `tools/reference/track_loader_check.py`.
+#[test]
+#[ignore]
+fn write_sample_folders() {
+    let Ok(root) = std::env::var("GAGAVATAR_TRACK_SAMPLE_DIR") else {
+        panic!("set GAGAVATAR_TRACK_SAMPLE_DIR to the folder to write into");
+    };
+    let root = std::path::PathBuf::from(root);
+    let img = frame_image();
+    let p = photo();
+    let crop = crop_image(&img, &p.frame.window).unwrap();
+    write_photo(&root.join("photo"), "photo", &p, &crop).unwrap();
+    let v = video(12);
+    let crops = v.frames.iter().map(|f| crop_image(&img, &f.window));
+    write_video(&root.join("video"), "video", &v, crops).unwrap();
+}
