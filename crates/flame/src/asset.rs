@@ -28,8 +28,8 @@ use std::path::Path;
 
 use gagavatar_formats::FormatError;
 
+use crate::embedding::{LandmarkEmbedding, DYNAMIC_ROWS};
 use crate::error::{FlameError, Result};
-use crate::landmarks::{LandmarkEmbedding, DYNAMIC_ROWS};
 
 pub const NUM_JOINTS: usize = 5;
 /// Pose-corrective inputs: 9 entries of `R - I` for each of the 4 non-root joints.

@@ -7,8 +7,8 @@
 use candle_core::{DType, Device, Tensor};
 
 use crate::asset::{FlameAsset, NUM_JOINTS, POSE_BASIS};
+use crate::embedding::LandmarkEmbedding;
 use crate::error::{FlameError, Result};
-use crate::landmarks::LandmarkEmbedding;
 use crate::rodrigues::rodrigues;
 use crate::skinning::{SharedSkinning, Skinning, TRANSFORM_LEN};
 

@@ -3,6 +3,7 @@
 //! synthetic stand-in asset with the release's exact layout.
 
 pub mod asset;
+pub mod embedding;
 pub mod error;
 pub mod landmarks;
 pub mod lbs;
