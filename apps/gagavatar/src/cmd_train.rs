@@ -247,7 +247,7 @@ pub fn run_train(a: TrainArgs) -> Result<()> {
     } else {
         let out = a.out.as_ref().context("--out RUN is required")?;
         let mut cfg = match (&a.config, &a.preset) {
-            (Some(path), _) => TrainConfig::read(path)?,
+            (Some(path), _) => TrainConfig::read_with_steps(path, a.steps)?,
             (None, Some(p)) => TrainConfig::preset(p)?,
             (None, None) => bail!("choose --preset tiny|release or --config FILE"),
         };

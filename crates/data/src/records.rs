@@ -15,7 +15,7 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use gagavatar_flame::TrackedFrame;
+use gagavatar_flame::{FlameError, TrackedFrame};
 
 use crate::error::{DataError, Result};
 use crate::names::frame_name_cmp;
@@ -101,14 +101,20 @@ pub fn frame_from_value(path: &Path, name: &str, value: &PyValue) -> Result<Trac
             Some([b[0], b[1], b[2], b[3]])
         }
     };
-    Ok(TrackedFrame {
+    let record = TrackedFrame {
         shapecode: vector("shapecode", SHAPE_COMPONENTS)?,
         expcode: vector("expcode", EXPRESSION_COMPONENTS)?,
         posecode: vector("posecode", POSE_COMPONENTS)?,
         eyecode: vector("eyecode", EYE_COMPONENTS)?,
         transform_matrix: Some(transform),
         bbox,
-    })
+    };
+    // Finite, and within what FLAME codes and cameras are.
+    record.validate().map_err(|e| match e {
+        FlameError::Record { field, reason } => err(&field, reason),
+        other => err("<record>", other.to_string()),
+    })?;
+    Ok(record)
 }
 
 fn shape_text(shape: &[usize]) -> String {

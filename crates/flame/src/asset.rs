@@ -335,6 +335,36 @@ impl FlameAsset {
         self.faces.len()
     }
 
+    /// A 64-bit fingerprint of the model (template, faces, blendshapes, skinning; FNV-1a over
+    /// 32-bit words): equal for the same asset, different for another one (the synthetic
+    /// stand-in, another seed of it, the release's FLAME). Weights record the fingerprint of the
+    /// asset they were trained with, so a mismatch can be reported.
+    pub fn fingerprint(&self) -> u64 {
+        const PRIME: u64 = 0x0000_0100_0000_01b3;
+        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+        let mut eat = |word: u32| {
+            h ^= u64::from(word);
+            h = h.wrapping_mul(PRIME);
+        };
+        eat(self.n_vertices as u32);
+        eat(self.layout.shape as u32);
+        eat(self.layout.expression as u32);
+        for v in self
+            .v_template
+            .iter()
+            .chain(&self.shapedirs)
+            .chain(&self.posedirs)
+            .chain(&self.j_regressor)
+            .chain(&self.weights)
+        {
+            eat(v.to_bits());
+        }
+        for f in &self.faces {
+            f.iter().for_each(|&i| eat(i));
+        }
+        h
+    }
+
     pub fn n_components(&self) -> usize {
         self.layout.shape + self.layout.expression
     }

@@ -36,6 +36,13 @@ pub enum FlameError {
     },
     #[error("tracked-frame record: field `{field}`: {reason}")]
     Record { field: String, reason: String },
+    /// A record read from a file (`TrackedFrame::from_json_file`): the message names it.
+    #[error("{}: tracked-frame record: field `{field}`: {reason}", path.display())]
+    RecordFile {
+        path: PathBuf,
+        field: String,
+        reason: String,
+    },
     #[error("FLAME input `{name}`: {reason}")]
     Input { name: &'static str, reason: String },
     #[error("tensor computation failed: {0}")]

@@ -10,6 +10,7 @@
 //! - [`tensor`]: the generic tensor values those readers return.
 //! - [`lmdb`]: a bounds-checked LMDB reader and writer (the release's `img_lmdb/`).
 //! - [`ply`]: PLY point clouds (3DGS scenes).
+//! - [`sniff`]: what a file is, from its first bytes, for error messages.
 //! - [`image`]: photos decoded by their content, not their name, with EXIF orientation applied,
 //!   a size cap, and downscaling of huge photos right after decoding.
 //! - [`atomic`]: outputs written under a temporary sibling name and renamed into place, so a
@@ -23,6 +24,7 @@ pub mod numpy;
 pub mod pickle;
 pub mod ply;
 pub mod safetensors;
+pub mod sniff;
 pub mod tensor;
 pub mod torch_zip;
 

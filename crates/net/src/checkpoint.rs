@@ -27,6 +27,9 @@ use crate::error::{NetError, Result};
 pub const IGNORED_PREFIXES: [&str; 1] = ["percep_loss."];
 /// Safetensors metadata key holding the model configuration as JSON.
 pub const CONFIG_METADATA_KEY: &str = "gagavatar.config";
+/// Safetensors metadata key holding the fingerprint (16 hex digits) of the FLAME asset the
+/// weights were trained with (`FlameAsset::fingerprint`).
+pub const FLAME_METADATA_KEY: &str = "gagavatar.flame";
 /// The release pickle nests the state dict under this key.
 const RELEASE_STATE_DICT: &str = "model.";
 
@@ -157,6 +160,8 @@ pub struct Weights {
     pub tensors: HashMap<String, Tensor>,
     /// From the safetensors metadata (`gagavatar.config`); `None` for the release `.pt`.
     pub config: Option<ModelConfig>,
+    /// Every safetensors metadata entry (empty for the release `.pt`).
+    pub metadata: BTreeMap<String, String>,
 }
 
 fn io_err(path: &Path, err: std::io::Error) -> NetError {
@@ -207,6 +212,7 @@ fn read_torch(path: &Path) -> Result<Weights> {
     Ok(Weights {
         tensors,
         config: None,
+        metadata: BTreeMap::new(),
     })
 }
 
@@ -246,7 +252,11 @@ fn read_safetensors_file(path: &Path) -> Result<Weights> {
             .to_string();
         tensors.insert(name, t);
     }
-    Ok(Weights { tensors, config })
+    Ok(Weights {
+        tensors,
+        config,
+        metadata: header.metadata,
+    })
 }
 
 pub(crate) fn ignored(key: &str) -> bool {
@@ -404,18 +414,30 @@ pub fn write_tensors(
     tensors: &BTreeMap<String, Tensor>,
     config: Option<&ModelConfig>,
 ) -> Result<()> {
+    write_tensors_with_metadata(path, tensors, config, &BTreeMap::new())
+}
+
+/// [`write_tensors`] with further metadata entries (e.g. [`FLAME_METADATA_KEY`]).
+pub fn write_tensors_with_metadata(
+    path: &Path,
+    tensors: &BTreeMap<String, Tensor>,
+    config: Option<&ModelConfig>,
+    extra: &BTreeMap<String, String>,
+) -> Result<()> {
     let mut owned = Vec::with_capacity(tensors.len());
     for (k, t) in tensors {
         let v: Vec<f32> = t.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
         owned.push((k.clone(), t.dims().to_vec(), v));
     }
-    write_safetensors(
-        path,
-        owned
-            .iter()
-            .map(|(k, s, v)| (k.clone(), s.as_slice(), Cow::Borrowed(v.as_slice()))),
-        config,
-    )
+    let out: Vec<TensorOut> = owned
+        .iter()
+        .map(|(k, s, v)| TensorOut::f32(k.clone(), s.clone(), v.as_slice()))
+        .collect();
+    let mut meta = weights_metadata(config)?;
+    meta.extend(extra.iter().map(|(k, v)| (k.clone(), v.clone())));
+    Ok(gagavatar_formats::safetensors::write_safetensors(
+        path, &out, &meta,
+    )?)
 }
 
 /// Writes `tensors` (converted to f32, row-major, one at a time) as a torch zip checkpoint

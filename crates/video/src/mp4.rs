@@ -1299,6 +1299,25 @@ pub fn read_mp4_info(path: &Path) -> Result<Mp4Info, VideoError> {
     track.info(path)
 }
 
+/// Demuxes the first video track without decoding it: the box tree, the sample tables, the
+/// timing checks and every sample's NAL units read (as Annex-B). Returns the sample count. The
+/// container half of [`decode_mp4`], for checks and fuzzing.
+pub fn demux_mp4(path: &Path) -> Result<usize, VideoError> {
+    let (file, track) = open_track(path)?;
+    track.check_timing(path)?;
+    let _ = track.composition_times();
+    let avc = track.require_avc(path)?;
+    param_sets_annexb(path, avc)?;
+    let mut samples = SampleReader::new(path, file, &track)?;
+    let mut annexb = Vec::new();
+    let mut n = 0;
+    while let Some(i) = samples.next_sample(&mut annexb) {
+        i?;
+        n += 1;
+    }
+    Ok(n)
+}
+
 /// Decodes every frame of the first video track (H.264, via OpenH264) to RGB u8 HWC of the
 /// coded size, in decode order, all in memory: a check for the files this crate writes. Other
 /// videos are read with [`crate::read::VideoReader`], which streams, checks the stream is one
