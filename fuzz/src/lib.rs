@@ -14,8 +14,11 @@ use std::path::PathBuf;
 
 use gagavatar_formats::image::DecodeOptions;
 
+/// A harness: bytes in, returns normally whatever they are.
+pub type Harness = fn(&[u8]);
+
 /// Every harness by name (the corpus folder and the AFL target name).
-pub const TARGETS: &[(&str, fn(&[u8]))] = &[
+pub const TARGETS: &[(&str, Harness)] = &[
     ("pickle", pickle),
     ("numpy", numpy),
     ("torch_zip", torch_zip),
@@ -30,7 +33,7 @@ pub const TARGETS: &[(&str, fn(&[u8]))] = &[
 ];
 
 /// The harness called `name`.
-pub fn target(name: &str) -> Option<fn(&[u8])> {
+pub fn target(name: &str) -> Option<Harness> {
     TARGETS.iter().find(|(n, _)| *n == name).map(|(_, f)| *f)
 }
 

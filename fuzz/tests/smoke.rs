@@ -379,3 +379,47 @@ fn the_mutator_changes_inputs_deterministically() {
     assert_eq!(xs, ys);
     assert!(xs.iter().filter(|x| **x != seed).count() > 40);
 }
+
+/// Replays every input an AFL++ campaign kept (`fuzz/afl/out/<target>/default/{queue,crashes,
+/// hangs}`, or the folder in `GAGAVATAR_FUZZ_REPLAY`) through the same checks as the smoke:
+/// the hostile-input corpus, run with `cargo test -p gagavatar-fuzz --test smoke -- --ignored`.
+#[test]
+#[ignore = "needs the output of a long AFL++ campaign"]
+fn replay_the_afl_corpora() {
+    std::panic::set_hook(Box::new(|_| {}));
+    let root = std::env::var_os("GAGAVATAR_FUZZ_REPLAY")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("afl/out"));
+    let mut failures = Vec::new();
+    let mut total = 0;
+    for &(target, f) in TARGETS {
+        let runner = Runner::new(target, f);
+        let mut n = 0;
+        let mut worst = 0usize;
+        for sub in ["queue", "crashes", "hangs"] {
+            let dir = root.join(target).join("default").join(sub);
+            let Ok(rd) = std::fs::read_dir(&dir) else {
+                continue;
+            };
+            let mut files: Vec<PathBuf> = rd.filter_map(|e| e.ok().map(|e| e.path())).collect();
+            files.sort();
+            for p in files.iter().filter(|p| p.is_file()) {
+                let data = std::fs::read(p).unwrap();
+                let before = LIVE.load(Ordering::Relaxed);
+                if let Err(e) = runner.run(&data, &p.display().to_string()) {
+                    failures.push(e);
+                }
+                worst = worst.max(PEAK.load(Ordering::Relaxed).saturating_sub(before));
+                n += 1;
+            }
+        }
+        eprintln!(
+            "{target}: {n} inputs replayed, largest allocation peak {:.1} MB",
+            worst as f64 / 1e6
+        );
+        total += n;
+    }
+    let _ = std::panic::take_hook();
+    assert!(total > 0, "no AFL output under {}", root.display());
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}

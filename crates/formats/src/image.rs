@@ -564,8 +564,8 @@ impl AreaDownscaler {
         self.row.iter_mut().for_each(|v| *v = 0.0);
         for (xs, px) in self.hx.iter().zip(line.chunks_exact(3)) {
             for &(ox, wx) in xs.iter().flatten() {
-                for c in 0..3 {
-                    self.row[ox * 3 + c] += wx * px[c] as f32;
+                for (acc, &v) in self.row[ox * 3..ox * 3 + 3].iter_mut().zip(px) {
+                    *acc += wx * v as f32;
                 }
             }
         }

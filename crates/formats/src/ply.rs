@@ -213,7 +213,7 @@ pub fn ply_bytes(
     if names.is_empty() {
         return Err("a PLY vertex needs at least one property".into());
     }
-    if values.len() % names.len() != 0 {
+    if !values.len().is_multiple_of(names.len()) {
         return Err(format!(
             "{} values are not whole rows of {} properties",
             values.len(),
