@@ -207,7 +207,9 @@ fn target_size(
 
 /// Where decoded rows go: straight into the output, or through the area downscaler.
 enum RowSink {
-    Copy { img: RgbImage, y: usize },
+    /// Grows with the rows actually decoded, so a header promising a huge image allocates
+    /// nothing until its data arrives.
+    Copy { data: Vec<u8>, w: u32, h: u32 },
     Shrink(AreaDownscaler),
 }
 
@@ -215,8 +217,9 @@ impl RowSink {
     fn new(w: u32, h: u32, nw: u32, nh: u32) -> Self {
         if (nw, nh) == (w, h) {
             RowSink::Copy {
-                img: RgbImage::new(w, h),
-                y: 0,
+                data: Vec::new(),
+                w,
+                h,
             }
         } else {
             RowSink::Shrink(AreaDownscaler::new(w, h, nw, nh))
@@ -225,21 +228,17 @@ impl RowSink {
 
     fn push(&mut self, rgb_row: &[u8]) {
         match self {
-            RowSink::Copy { img, y } => {
-                let n = rgb_row.len();
-                if let Some(dst) = img.get_mut(*y * n..(*y + 1) * n) {
-                    dst.copy_from_slice(rgb_row);
-                }
-                *y += 1;
-            }
+            RowSink::Copy { data, .. } => data.extend_from_slice(rgb_row),
             RowSink::Shrink(d) => d.push_row(rgb_row),
         }
     }
 
-    fn finish(self) -> RgbImage {
+    fn finish(self) -> Result<RgbImage, String> {
         match self {
-            RowSink::Copy { img, .. } => img,
-            RowSink::Shrink(d) => d.finish(),
+            RowSink::Copy { data, w, h } => {
+                RgbImage::from_raw(w, h, data).ok_or_else(|| "the image data is truncated".into())
+            }
+            RowSink::Shrink(d) => Ok(d.finish()),
         }
     }
 }
@@ -311,7 +310,7 @@ fn decode_png_rows(bytes: &[u8], opts: &DecodeOptions) -> Result<Option<Decoded>
         sink.push(&line);
     }
     Ok(Some(Decoded {
-        rgb: sink.finish(),
+        rgb: sink.finish()?,
         width: w,
         height: h,
         orientation,
@@ -528,14 +527,19 @@ pub fn area_downscale(src: &RgbImage, nw: u32, nh: u32) -> RgbImage {
 }
 
 /// The area-average downscale fed one source row at a time (RGB u8), so the source never has to
-/// exist as a whole: only the output-sized accumulator is kept.
+/// exist as a whole. A source row touches at most two output rows and rows arrive in order, so
+/// only two output rows are accumulated (in f32) at a time; finished rows are rounded into the
+/// output as they complete.
 pub struct AreaDownscaler {
     hx: Vec<[Option<(usize, f32)>; 2]>,
     hy: Vec<[Option<(usize, f32)>; 2]>,
     nw: usize,
     nh: usize,
+    /// Output rows `base` and `base + 1`.
     acc: Vec<f32>,
+    base: usize,
     row: Vec<f32>,
+    out: Vec<u8>,
     y: usize,
 }
 
@@ -549,15 +553,30 @@ impl AreaDownscaler {
             hy: coverage(h, nh),
             nw,
             nh,
-            acc: vec![0f32; nw * nh * 3],
+            acc: vec![0f32; 2 * nw * 3],
+            base: 0,
             row: vec![0f32; nw * 3],
+            out: Vec::with_capacity(nw * nh * 3),
             y: 0,
         }
     }
 
+    /// Rounds output row `base` into the output and moves the window down one row.
+    fn flush_row(&mut self) {
+        let n = self.nw * 3;
+        self.out.extend(
+            self.acc[..n]
+                .iter()
+                .map(|v| v.round().clamp(0.0, 255.0) as u8),
+        );
+        self.acc.copy_within(n.., 0);
+        self.acc[n..].iter_mut().for_each(|v| *v = 0.0);
+        self.base += 1;
+    }
+
     /// Adds the next source row (`w * 3` bytes); rows beyond `h` are ignored.
     pub fn push_row(&mut self, line: &[u8]) {
-        let Some(ys) = self.hy.get(self.y) else {
+        let Some(ys) = self.hy.get(self.y).copied() else {
             return;
         };
         self.y += 1;
@@ -569,22 +588,23 @@ impl AreaDownscaler {
                 }
             }
         }
-        let nw = self.nw;
+        let n = self.nw * 3;
         for &(oy, wy) in ys.iter().flatten() {
-            let dst = &mut self.acc[oy * nw * 3..(oy + 1) * nw * 3];
-            for (d, r) in dst.iter_mut().zip(&self.row) {
+            while oy >= self.base + 2 {
+                self.flush_row();
+            }
+            let at = (oy - self.base) * n;
+            for (d, r) in self.acc[at..at + n].iter_mut().zip(&self.row) {
                 *d += wy * r;
             }
         }
     }
 
-    pub fn finish(self) -> RgbImage {
-        let data = self
-            .acc
-            .into_iter()
-            .map(|v| v.round().clamp(0.0, 255.0) as u8)
-            .collect();
-        RgbImage::from_raw(self.nw as u32, self.nh as u32, data).expect("buffer sized nw*nh*3")
+    pub fn finish(mut self) -> RgbImage {
+        while self.base < self.nh {
+            self.flush_row();
+        }
+        RgbImage::from_raw(self.nw as u32, self.nh as u32, self.out).expect("buffer sized nw*nh*3")
     }
 }
 
