@@ -209,7 +209,11 @@ fn target_size(
 enum RowSink {
     /// Grows with the rows actually decoded, so a header promising a huge image allocates
     /// nothing until its data arrives.
-    Copy { data: Vec<u8>, w: u32, h: u32 },
+    Copy {
+        data: Vec<u8>,
+        w: u32,
+        h: u32,
+    },
     Shrink(AreaDownscaler),
 }
 

@@ -1,6 +1,7 @@
 //! Huge photos are downscaled while they are decoded: peak memory stays near the output size,
 //! not the photo's (a 10000x10000 photo peaked at 1.8 GB when decoded whole). A counting
-//! allocator measures the decode alone; the inputs are made before it starts counting.
+//! allocator measures the decode alone; the inputs are made before it starts counting, and the
+//! tests run one at a time.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -40,6 +41,12 @@ static A: Counting = Counting;
 /// The tests measure one at a time (the counter is process-wide).
 static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
 
+/// Held by each test from before it makes its input: the counters are process-wide, so another
+/// test's allocations must not fall inside a measurement.
+fn lock() -> std::sync::MutexGuard<'static, ()> {
+    ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 /// Bytes allocated at the peak of `f` above what was live before it.
 fn peak_of<T>(f: impl FnOnce() -> T) -> (T, usize) {
     let before = LIVE.load(Ordering::Relaxed);
@@ -57,17 +64,18 @@ fn pixel(x: u32, y: u32) -> [u8; 3] {
     [(x / 24) as u8, (y / 16) as u8, ((x + y) / 40) as u8]
 }
 
-fn big_png() -> Vec<u8> {
+/// A `w`x`h` RGB PNG of [`pixel`], encoded row by row (the photo never exists whole here either).
+fn big_png_sized(w: u32, h: u32) -> Vec<u8> {
     let mut out = Vec::new();
     {
-        let mut enc = png::Encoder::new(&mut out, W, H);
+        let mut enc = png::Encoder::new(&mut out, w, h);
         enc.set_color(png::ColorType::Rgb);
         enc.set_compression(png::Compression::Fastest);
-        let mut w = enc.write_header().unwrap();
-        let mut s = w.stream_writer().unwrap();
-        let mut row = vec![0u8; W as usize * 3];
-        for y in 0..H {
-            for x in 0..W {
+        let mut writer = enc.write_header().unwrap();
+        let mut s = writer.stream_writer().unwrap();
+        let mut row = vec![0u8; w as usize * 3];
+        for y in 0..h {
+            for x in 0..w {
                 row[x as usize * 3..x as usize * 3 + 3].copy_from_slice(&pixel(x, y));
             }
             std::io::Write::write_all(&mut s, &row).unwrap();
@@ -75,6 +83,10 @@ fn big_png() -> Vec<u8> {
         s.finish().unwrap();
     }
     out
+}
+
+fn big_png() -> Vec<u8> {
+    big_png_sized(W, H)
 }
 
 fn big_jpeg() -> Vec<u8> {
@@ -86,8 +98,8 @@ fn big_jpeg() -> Vec<u8> {
     out
 }
 
+/// Call with [`lock`] held.
 fn check(name: &str, bytes: &[u8], tolerance: i32) {
-    let _guard = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let opts = DecodeOptions {
         min_side: 1,
         fit_within: Some(1024),
@@ -125,6 +137,7 @@ fn check(name: &str, bytes: &[u8], tolerance: i32) {
 #[test]
 fn a_huge_png_is_downscaled_row_by_row() {
     // The gradient changes by at most one level across an output pixel's area.
+    let _guard = lock();
     check("huge.png", &big_png(), 2);
 }
 
@@ -132,5 +145,61 @@ fn a_huge_png_is_downscaled_row_by_row() {
 #[test]
 fn a_huge_jpeg_is_decoded_at_reduced_size() {
     // JPEG quantisation and the reduced IDCT add a few levels.
+    let _guard = lock();
     check("huge.jpg", &big_jpeg(), 6);
+}
+
+/// The photo from the issue: 10000x10000 (300 MB as RGB, 1.8 GB peak when it was decoded
+/// whole) fits 1024 with a peak of a few megabytes.
+#[test]
+fn a_10000_px_square_png_stays_small() {
+    const SIDE: u32 = 10_000;
+    let _guard = lock();
+    let bytes = big_png_sized(SIDE, SIDE);
+    let opts = DecodeOptions {
+        min_side: 1,
+        fit_within: Some(1024),
+    };
+    let (d, peak) = peak_of(|| decode_image(&bytes, "square.png", &opts).unwrap());
+    assert_eq!(d.rgb.dimensions(), (1024, 1024));
+    assert_eq!((d.original_width, d.original_height), (SIDE, SIDE));
+    assert!(
+        peak < PEAK_LIMIT,
+        "decoding allocated {} MB at its peak (limit {} MB; the photo is 300 MB as RGB)",
+        peak >> 20,
+        PEAK_LIMIT >> 20
+    );
+    eprintln!("square.png: peak {:.1} MB", peak as f64 / 1e6);
+}
+
+/// A PNG whose header promises a large image (within the caps) but whose data stops after a
+/// few rows: decoded at full size, the output grows with the rows that arrive, so the refusal
+/// costs kilobytes, not the 405 MB the header asks for.
+#[test]
+fn a_png_header_without_its_data_allocates_little() {
+    let (w, h) = (15_000u32, 9_000u32);
+    let _guard = lock();
+    let mut bytes = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut bytes, w, h);
+        enc.set_color(png::ColorType::Rgb);
+        let mut wr = enc.write_header().unwrap();
+        let mut s = wr.stream_writer().unwrap();
+        let row = vec![7u8; w as usize * 3];
+        for _ in 0..4 {
+            std::io::Write::write_all(&mut s, &row).unwrap();
+        }
+        // Flushes the rows written so far without finishing the image.
+        std::io::Write::flush(&mut s).unwrap();
+        std::mem::forget(s);
+    }
+    let (r, peak) = peak_of(|| decode_image(&bytes, "cut.png", &DecodeOptions::default()));
+    let e = r.expect_err("a truncated PNG must be refused").to_string();
+    assert!(e.starts_with("cut.png: "), "{e}");
+    assert!(
+        peak < PEAK_LIMIT,
+        "refusing the truncated PNG allocated {} MB (limit {} MB)",
+        peak >> 20,
+        PEAK_LIMIT >> 20
+    );
 }
