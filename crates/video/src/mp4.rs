@@ -350,7 +350,7 @@ impl Mp4Sink {
     ) -> Result<Self, VideoError> {
         let enc = H264Encoder::new(width, height, fps)?;
         check_file_target(path)?;
-        let data_tmp = TempPath::file(temp_sibling(path, "mdat.")?);
+        let data_tmp = TempPath::file(temp_sibling(path)?);
         // Read back in `finish`, hence read + write.
         let file = std::fs::OpenOptions::new()
             .read(true)
@@ -441,7 +441,7 @@ impl Mp4Sink {
         }
         let moov = moov(&ix, start, co64);
 
-        let tmp = TempPath::file(temp_sibling(&target, "")?);
+        let tmp = TempPath::file(temp_sibling(&target)?);
         let io = |e| VideoError::io(tmp.path(), e);
         let mut out = BufWriter::new(File::create(tmp.path()).map_err(io)?);
         out.write_all(&ftyp).map_err(io)?;
