@@ -85,11 +85,18 @@ pub fn lmdb(data: &[u8]) {
 }
 
 /// An mp4 / mov file: the box tree, the video track's sample tables and every sample's NAL
-/// units (the demuxer; decoding is OpenH264's).
+/// units (the demuxer), then the built-in reader's plan for it: container and codec sniffing
+/// and the SPS / PPS parsing that decides whether OpenH264 may decode it (decoding itself is
+/// OpenH264's; ffmpeg is never started here).
 pub fn mp4(data: &[u8]) {
     let path = scratch_file("fuzz.mp4", data);
     let _ = gagavatar_video::mp4::read_mp4_info(&path);
     let _ = gagavatar_video::mp4::demux_mp4(&path);
+    let opts = gagavatar_video::read::ReadOptions {
+        decoder: gagavatar_video::read::DecoderChoice::OpenH264,
+        ..Default::default()
+    };
+    let _ = gagavatar_video::read::probe(&path, &opts, false);
 }
 
 /// A 3DGS `.ply` scene.
