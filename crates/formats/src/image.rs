@@ -134,6 +134,9 @@ pub fn decode_image(
         Some(k) => k,
         None => return Err(err(unknown_format_reason(bytes))),
     };
+    if kind == ImageKind::Jpeg {
+        check_jpeg_data_length(bytes).map_err(err)?;
+    }
     let streamed = match kind {
         ImageKind::Png => decode_png_rows(bytes, opts),
         ImageKind::Jpeg => decode_jpeg_scaled(bytes, opts),
@@ -319,6 +322,89 @@ fn decode_png_rows(bytes: &[u8], opts: &DecodeOptions) -> Result<Option<Decoded>
         height: h,
         orientation,
     }))
+}
+
+/// Refuses a sequential (baseline or extended Huffman) JPEG whose image data is too short for
+/// the size its header states: every 8x8 block of every component takes at least two Huffman
+/// codes (its DC difference and an end-of-block), each at least one bit. The decoders fill the
+/// blocks a truncated file lacks, so without this a 700-byte file saying 6693x6169 cost as
+/// much time as a real 41-megapixel photo (seconds; found by fuzzing). Progressive files (whose
+/// end-of-band runs legitimately cover many blocks with one code) and headers this cannot
+/// read are left to the decoder.
+fn check_jpeg_data_length(bytes: &[u8]) -> Result<(), String> {
+    // (width, height, [(h, v) sampling factors per component])
+    let mut frame: Option<(u64, u64, Vec<(u64, u64)>)> = None;
+    let mut i = 2;
+    while i + 4 <= bytes.len() {
+        if bytes[i] != 0xff {
+            // The decoders skip garbage between segments, looking for the next marker.
+            i += 1;
+            continue;
+        }
+        let marker = bytes[i + 1];
+        if marker == 0xff {
+            // Fill byte before a marker.
+            i += 1;
+            continue;
+        }
+        if marker == 0x01 || (0xd0..=0xd7).contains(&marker) {
+            i += 2;
+            continue;
+        }
+        let len = u16::from_be_bytes([bytes[i + 2], bytes[i + 3]]) as usize;
+        let Some(segment) = bytes.get(i + 4..i + 2 + len).filter(|_| len >= 2) else {
+            return Ok(());
+        };
+        match marker {
+            // Baseline and extended sequential, Huffman coded.
+            0xc0 | 0xc1 => {
+                if segment.len() < 6 {
+                    return Ok(());
+                }
+                let h = u64::from(u16::from_be_bytes([segment[1], segment[2]]));
+                let w = u64::from(u16::from_be_bytes([segment[3], segment[4]]));
+                let comps: Vec<(u64, u64)> = segment[6..]
+                    .chunks_exact(3)
+                    .take(usize::from(segment[5]))
+                    .map(|c| (u64::from(c[1] >> 4), u64::from(c[1] & 15)))
+                    .collect();
+                frame = Some((w, h, comps));
+            }
+            // Any other frame type (progressive, lossless, arithmetic coded).
+            0xc2 | 0xc3 | 0xc5..=0xc7 | 0xc9..=0xcb | 0xcd..=0xcf => return Ok(()),
+            // Start of scan: the entropy-coded data follows.
+            0xda => {
+                let Some((w, h, comps)) = frame else {
+                    return Ok(());
+                };
+                let hmax = comps.iter().map(|c| c.0).max().unwrap_or(0);
+                let vmax = comps.iter().map(|c| c.1).max().unwrap_or(0);
+                if w == 0 || h == 0 || hmax == 0 || vmax == 0 {
+                    return Ok(());
+                }
+                let blocks: u64 = comps
+                    .iter()
+                    .map(|&(ch, cv)| {
+                        let cw = (w * ch).div_ceil(hmax);
+                        let cht = (h * cv).div_ceil(vmax);
+                        cw.div_ceil(8) * cht.div_ceil(8)
+                    })
+                    .sum();
+                let needed = (blocks * 2).div_ceil(8);
+                let have = (bytes.len() - (i + 2 + len)) as u64;
+                if have < needed {
+                    return Err(format!(
+                        "the JPEG data is truncated: a {w}x{h} image needs at least {needed} bytes \
+                         of image data, the file has {have}"
+                    ));
+                }
+                return Ok(());
+            }
+            _ => {}
+        }
+        i += 2 + len;
+    }
+    Ok(())
 }
 
 /// A colour channel with alpha, composited onto black (rounded).
@@ -686,6 +772,63 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("1x1") && e.contains("16x16"), "{e}");
+    }
+
+    fn jpeg_bytes(img: &RgbImage) -> Vec<u8> {
+        let mut out = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 90)
+            .encode_image(img)
+            .unwrap();
+        out
+    }
+
+    /// A baseline JPEG whose header states a size its data cannot hold is refused before
+    /// decoding (the decoders would fill the missing blocks, as slow as a real photo that size).
+    #[test]
+    fn a_jpeg_too_short_for_its_size_is_truncated() {
+        let small = jpeg_bytes(&gradient(64, 48));
+        let sof = small
+            .windows(2)
+            .position(|w| w == [0xff, 0xc0])
+            .expect("a baseline SOF0");
+        let mut big = small.clone();
+        big[sof + 5..sof + 7].copy_from_slice(&6169u16.to_be_bytes());
+        big[sof + 7..sof + 9].copy_from_slice(&6693u16.to_be_bytes());
+        for fit in [None, Some(2048)] {
+            let opts = DecodeOptions {
+                min_side: 1,
+                fit_within: fit,
+            };
+            assert!(decode_image(&small, "s.jpg", &opts).is_ok());
+            let e = decode_image(&big, "big.jpg", &opts)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.starts_with("big.jpg: the JPEG data is truncated: a 6693x6169 image needs"),
+                "{e}"
+            );
+        }
+        // The case AFL++ saved as a hang (688 bytes stating 6693x6169; 5 s to decode before).
+        let hang = std::fs::read(
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("tests/data/fuzz/afl_hang_tiny_jpeg_6693x6169.jpg"),
+        )
+        .unwrap();
+        let opts = DecodeOptions {
+            min_side: 1,
+            fit_within: Some(2048),
+        };
+        let e = decode_image(&hang, "hang.jpg", &opts)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("truncated") && e.contains("needs at least"),
+            "{e}"
+        );
+        // A flat image, the most compressible real data, is not mistaken for a short one.
+        let flat = jpeg_bytes(&RgbImage::from_pixel(2048, 1536, image::Rgb([90, 90, 90])));
+        let d = decode_image(&flat, "flat.jpg", &DecodeOptions::default()).unwrap();
+        assert_eq!(d.rgb.dimensions(), (2048, 1536));
     }
 
     /// PNG's chunk checksum (so a hand-edited header still parses).
