@@ -344,8 +344,10 @@ fn decode_png_rows(bytes: &[u8], opts: &DecodeOptions) -> Result<Option<Decoded>
 /// end-of-band runs legitimately cover many blocks with one code) and headers this cannot
 /// read are left to the decoder.
 fn check_jpeg_data_length(bytes: &[u8]) -> Result<(), String> {
-    // (width, height, [(h, v) sampling factors per component])
-    let mut frame: Option<(u64, u64, Vec<(u64, u64)>)> = None;
+    // The largest minimum over the sequential frame headers before the first scan, with its
+    // size: a file with several frame headers (malformed, but decoders read some of them) is
+    // held to the most demanding one, so a decoy header cannot hide a huge one.
+    let mut floor: Option<(u64, u64, u64)> = None;
     let mut i = 2;
     while i + 4 <= bytes.len() {
         if bytes[i] != 0xff {
@@ -369,10 +371,7 @@ fn check_jpeg_data_length(bytes: &[u8]) -> Result<(), String> {
         };
         match marker {
             // Baseline and extended sequential, Huffman coded.
-            0xc0 | 0xc1 => {
-                if segment.len() < 6 {
-                    return Ok(());
-                }
+            0xc0 | 0xc1 if segment.len() >= 6 => {
                 let h = u64::from(u16::from_be_bytes([segment[1], segment[2]]));
                 let w = u64::from(u16::from_be_bytes([segment[3], segment[4]]));
                 let comps: Vec<(u64, u64)> = segment[6..]
@@ -380,37 +379,33 @@ fn check_jpeg_data_length(bytes: &[u8]) -> Result<(), String> {
                     .take(usize::from(segment[5]))
                     .map(|c| (u64::from(c[1] >> 4), u64::from(c[1] & 15)))
                     .collect();
-                frame = Some((w, h, comps));
-            }
-            // Any other frame type (progressive, lossless, arithmetic coded).
-            0xc2 | 0xc3 | 0xc5..=0xc7 | 0xc9..=0xcb | 0xcd..=0xcf => return Ok(()),
-            // Start of scan: the entropy-coded data follows.
-            0xda => {
-                let Some((w, h, comps)) = frame else {
-                    return Ok(());
-                };
                 let hmax = comps.iter().map(|c| c.0).max().unwrap_or(0);
                 let vmax = comps.iter().map(|c| c.1).max().unwrap_or(0);
-                if w == 0 || h == 0 || hmax == 0 || vmax == 0 {
-                    return Ok(());
+                if w > 0 && h > 0 && hmax > 0 && vmax > 0 {
+                    let blocks: u64 = comps
+                        .iter()
+                        .map(|&(ch, cv)| {
+                            let cw = (w * ch).div_ceil(hmax);
+                            let cht = (h * cv).div_ceil(vmax);
+                            cw.div_ceil(8) * cht.div_ceil(8)
+                        })
+                        .sum();
+                    let needed = (blocks * 2).div_ceil(8);
+                    if floor.is_none_or(|f| needed > f.2) {
+                        floor = Some((w, h, needed));
+                    }
                 }
-                let blocks: u64 = comps
-                    .iter()
-                    .map(|&(ch, cv)| {
-                        let cw = (w * ch).div_ceil(hmax);
-                        let cht = (h * cv).div_ceil(vmax);
-                        cw.div_ceil(8) * cht.div_ceil(8)
-                    })
-                    .sum();
-                let needed = (blocks * 2).div_ceil(8);
+            }
+            // Start of scan: the entropy-coded data follows.
+            0xda => {
                 let have = (bytes.len() - (i + 2 + len)) as u64;
-                if have < needed {
-                    return Err(format!(
+                return match floor {
+                    Some((w, h, needed)) if have < needed => Err(format!(
                         "the JPEG data is truncated: a {w}x{h} image needs at least {needed} bytes \
                          of image data, the file has {have}"
-                    ));
-                }
-                return Ok(());
+                    )),
+                    _ => Ok(()),
+                };
             }
             _ => {}
         }
@@ -835,6 +830,20 @@ mod tests {
             .to_string();
         assert!(
             e.contains("truncated") && e.contains("needs at least"),
+            "{e}"
+        );
+        // The second: a decoy arithmetic-coded frame header before a 784x6080 baseline one (742
+        // bytes, 0.2 s, saved as a hang on a loaded machine).
+        let decoy = std::fs::read(
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("tests/data/fuzz/afl_slow_jpeg_decoy_sof.jpg"),
+        )
+        .unwrap();
+        let e = decode_image(&decoy, "decoy.jpg", &opts)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("784x6080") && e.contains("needs at least"),
             "{e}"
         );
         // A flat image, the most compressible real data, is not mistaken for a short one.
