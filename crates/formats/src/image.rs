@@ -328,6 +328,9 @@ fn decode_png_rows(bytes: &[u8], opts: &DecodeOptions) -> Result<Option<Decoded>
         }
         sink.push(&line);
     }
+    // Every row can be out before the data stream ends (its checksum, the chunk's CRC, IEND):
+    // reading to the end refuses a file cut there, as the whole-image decoders do.
+    reader.finish().map_err(png_reason)?;
     Ok(Some(Decoded {
         rgb: sink.finish()?,
         width: w,
