@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
-"""LMDB fixtures of `crates/data` (`src/lmdb.rs`), written by Python's `lmdb` binding (1.5.1,
+"""LMDB fixtures of `crates/formats` (`src/lmdb.rs`), written by Python's `lmdb` binding (1.5.1,
 which bundles liblmdb 0.9.31), and a checker for environments written by our Rust writer.
 
-Fixtures (in `crates/data/tests/data/`):
+Fixtures (in `crates/formats/tests/data/`):
 
 * `lmdb_mixed/data.mdb`: two write transactions, so the newest meta page is page 0
   (txnid 2; page 1 holds the older txnid 1). Transaction 1 puts 200 keys `frame_NNNN` in a
@@ -41,7 +41,7 @@ import tempfile
 import lmdb
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..")
-OUT = os.path.join(ROOT, "crates", "data", "tests", "data")
+OUT = os.path.join(ROOT, "crates", "formats", "tests", "data")
 
 
 def value_bytes(seed, length):

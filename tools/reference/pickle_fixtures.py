@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
-"""Writes the fixtures of the safe pickle reader (`crates/flame/src/pickle.rs`, `pth.rs`) into
-`crates/flame/tests/golden/`:
+"""Writes the fixtures of the safe pickle reader (`crates/formats/src/pickle/read.rs`,
+`torch_zip/read.rs`) into
+`crates/formats/tests/golden/`:
 
 * `pickle_plain_p{0..5}.pkl`: one plain-data object (no tensors) pickled with protocols 0 to 5,
   and `pickle_plain_expected.json`: what each of them contains, as seen by CPython's own
@@ -33,7 +34,7 @@ import torch
 from safetensors.torch import save_file
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..")
-OUT = os.path.join(ROOT, "crates", "flame", "tests", "golden")
+OUT = os.path.join(ROOT, "crates", "formats", "tests", "golden")
 
 
 # ----------------------------------------------------------------------------------------------

@@ -1,6 +1,8 @@
 #!/usr/bin/env python3
 """Writes the fixtures of `crates/data` (tracked-data pickles, images, a small release dataset)
-into `crates/data/tests/data/`, and checks files written by our Rust writers.
+into `crates/data/tests/data/` (the `numpy_*` pickles and the refused ones into
+`crates/formats/tests/data/`, beside the pickle reader), and checks files written by our Rust
+writers.
 
 Fixtures:
 
@@ -58,6 +60,8 @@ import numpy as np
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..")
 OUT = os.path.join(ROOT, "crates", "data", "tests", "data")
+# The format-level pickles (numpy forms, refused content) belong to the pickle reader's crate.
+OUT_FORMATS = os.path.join(ROOT, "crates", "formats", "tests", "data")
 
 FIELDS = {
     "bbox": (4,),
@@ -69,15 +73,15 @@ FIELDS = {
 }
 
 
-def write(name, data):
-    path = os.path.join(OUT, name)
+def write(name, data, out=OUT):
+    path = os.path.join(out, name)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "wb") as f:
         f.write(data)
 
 
-def write_json(name, obj):
-    write(name, (json.dumps(obj, indent=1, sort_keys=False) + "\n").encode())
+def write_json(name, obj, out=OUT):
+    write(name, (json.dumps(obj, indent=1, sort_keys=False) + "\n").encode(), out)
 
 
 # ------------------------------------------------------------------------------------------
@@ -287,8 +291,8 @@ def write_misc():
     for name, data in files.items():
         back = pickle.loads(data)
         assert canon(back) == want, name
-        write(name, data)
-    write_json("numpy_misc_expected.json", want)
+        write(name, data, OUT_FORMATS)
+    write_json("numpy_misc_expected.json", want, OUT_FORMATS)
 
 
 # ------------------------------------------------------------------------------------------
@@ -308,12 +312,12 @@ class Custom:
 def write_refused():
     import torch
 
-    write("evil_os_system.pkl", pickle.dumps({"frame_0": Evil()}, protocol=4))
-    write("torch_tensor.pkl", pickle.dumps({"frame_0": {"shapecode": torch.zeros(3)}}, protocol=2))
-    write("custom_class.pkl", pickle.dumps({"a": [Custom()]}, protocol=4))
-    write("numpy_complex.pkl", pickle.dumps({"c": np.array([1 + 2j], np.complex64)}, protocol=4))
+    write("evil_os_system.pkl", pickle.dumps({"frame_0": Evil()}, protocol=4), OUT_FORMATS)
+    write("torch_tensor.pkl", pickle.dumps({"frame_0": {"shapecode": torch.zeros(3)}}, protocol=2), OUT_FORMATS)
+    write("custom_class.pkl", pickle.dumps({"a": [Custom()]}, protocol=4), OUT_FORMATS)
+    write("numpy_complex.pkl", pickle.dumps({"c": np.array([1 + 2j], np.complex64)}, protocol=4), OUT_FORMATS)
     st = np.zeros(2, dtype=[("a", "<f4"), ("b", "<i4")])
-    write("numpy_structured.pkl", pickle.dumps({"s": st}, protocol=4))
+    write("numpy_structured.pkl", pickle.dumps({"s": st}, protocol=4), OUT_FORMATS)
 
 
 # ------------------------------------------------------------------------------------------

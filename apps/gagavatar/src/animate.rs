@@ -177,6 +177,64 @@ pub fn from_tracked_folder(dir: &Path, key: Option<&str>) -> Result<ResolvedSour
     })
 }
 
+/// Reads weights and builds the model; also returns the fingerprint of the FLAME asset the
+/// weights were trained with, when they record one.
+pub fn load_model_noting_flame(
+    ckpt: &Path,
+    explicit: Option<&gagavatar_net::ModelConfig>,
+) -> Result<(GagAvatar, Option<String>)> {
+    let loading = || format!("loading {}", ckpt.display());
+    let weights = checkpoint::read_weights(ckpt).with_context(loading)?;
+    let trained_with = weights
+        .metadata
+        .get(checkpoint::FLAME_METADATA_KEY)
+        .cloned();
+    let cfg = checkpoint::resolve_config(&weights, explicit);
+    checkpoint::check_keys(&cfg, &weights.tensors).with_context(loading)?;
+    let model =
+        checkpoint::build_model(&cfg, weights.tensors, &Device::Cpu).with_context(loading)?;
+    Ok((model, trained_with))
+}
+
+/// Why a FLAME asset (by fingerprint) does not fit weights, or `None` when it does or cannot be
+/// told. Weights written by `gagavatar train` record their asset's fingerprint; for others the
+/// architecture tells: the release's weights were trained with the real FLAME, the `tiny` and
+/// `small` ones (trained here) with the built-in synthetic asset unless `train --flame` said
+/// otherwise.
+pub fn flame_mismatch(
+    trained_with: Option<&str>,
+    architecture: &str,
+    asset: u64,
+) -> Option<String> {
+    let synthetic = synthetic_fingerprint();
+    let ours = format!("{asset:016x}");
+    match trained_with {
+        Some(fp) if fp.eq_ignore_ascii_case(&ours) => None,
+        Some(fp) => Some(format!(
+            "the weights were trained with another FLAME asset (fingerprint {fp}, this one is \
+             {ours}{}); the avatar will be distorted. Pass the asset they were trained with",
+            if asset == synthetic { ", the built-in synthetic one" } else { "" }
+        )),
+        None if architecture == "release" && asset == synthetic => Some(
+            "the release weights were trained with the real FLAME asset (FLAME_with_eye.pt), not \
+             the built-in synthetic stand-in; the avatar will be distorted"
+                .into(),
+        ),
+        None if architecture != "release" && asset != synthetic => Some(format!(
+            "`{architecture}` weights without a recorded FLAME asset were trained with the built-in \
+             synthetic one (--flame synthetic); this asset differs (fingerprint {ours}), so the \
+             avatar may be distorted"
+        )),
+        None => None,
+    }
+}
+
+/// The fingerprint of the built-in synthetic asset (`gagavatar flame synth`, seed 0).
+fn synthetic_fingerprint() -> u64 {
+    static FP: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
+    *FP.get_or_init(|| gagavatar_flame::synthesize(0).fingerprint())
+}
+
 /// The 3x4 transform of a record as `[3, 4]` f32 values, or an error naming the record.
 pub fn record_transform(record: &TrackedFrame, what: &str) -> Result<[[f64; 4]; 3]> {
     record
@@ -204,9 +262,19 @@ impl Session {
         let explicit = a.preset.as_deref().map(preset).transpose()?;
         let source = src.record;
         let source_tm = record_transform(&source, "the source record")?;
-        let model = checkpoint::load_model(&a.ckpt, explicit.as_ref(), &Device::Cpu)
-            .with_context(|| format!("loading {}", a.ckpt.display()))?;
+        let (model, trained_with) = load_model_noting_flame(&a.ckpt, explicit.as_ref())?;
         let flame = load_flame(&a.flame, a.n_shape, a.n_exp)?;
+        if let Some(warning) = flame_mismatch(
+            trained_with.as_deref(),
+            &model.cfg.name,
+            flame.asset_fingerprint,
+        ) {
+            eprintln!(
+                "warning: {} with FLAME asset {}: {warning}",
+                a.ckpt.display(),
+                a.flame.display()
+            );
+        }
         if flame.n_vertices != model.cfg.n_vertices {
             bail!(
                 "FLAME asset {} has {} vertices, the model expects {}",
@@ -431,4 +499,30 @@ pub fn spinner(what: &str) -> ProgressBar {
     );
     bar.set_message(what.to_string());
     bar
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn flame_mismatches_are_reported() {
+        let synthetic = synthetic_fingerprint();
+        let other = synthetic ^ 1;
+        let fp = |x: u64| format!("{x:016x}");
+        // Recorded fingerprints decide.
+        assert!(flame_mismatch(Some(&fp(synthetic)), "tiny", synthetic).is_none());
+        assert!(flame_mismatch(Some(&fp(other)), "release", other).is_none());
+        let w = flame_mismatch(Some(&fp(other)), "tiny", synthetic).unwrap();
+        assert!(
+            w.contains("another FLAME asset") && w.contains("synthetic"),
+            "{w}"
+        );
+        // Without one, the architecture: release with the stand-in, tiny with another asset.
+        let w = flame_mismatch(None, "release", synthetic).unwrap();
+        assert!(w.contains("FLAME_with_eye.pt"), "{w}");
+        assert!(flame_mismatch(None, "release", other).is_none());
+        assert!(flame_mismatch(None, "tiny", synthetic).is_none());
+        assert!(flame_mismatch(None, "small", other).is_some());
+    }
 }

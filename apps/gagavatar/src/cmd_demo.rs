@@ -23,7 +23,7 @@ heads (`gagavatar synth-data`); the source identity was held out of training. Ou
 demo_out/reenact.mp4 (driver | result), demo_out/orbit.mp4, demo_out/avatar.ply, and the \
 tracking of a real public-domain photo (assets/demo/astronaut.jpg): demo_out/astronaut_track/ \
 and its fit drawn over it, demo_out/astronaut_overlay.png.\n\n\
-Example:\n  gagavatar demo\n  gagavatar demo --assets assets/demo -o demo_out"
+Example:\n  gagavatar demo\n  gagavatar demo --assets assets/demo -o demo_out --no-watermark"
 )]
 pub struct DemoArgs {
     /// Folder with weights.safetensors, source.png, source.json and driver.json.
@@ -32,6 +32,53 @@ pub struct DemoArgs {
     /// Output folder.
     #[arg(short, long, default_value = "demo_out")]
     pub output: PathBuf,
+    /// Do not draw the "AI-generated" watermark on the videos.
+    #[arg(long)]
+    pub no_watermark: bool,
+}
+
+/// What the demo runs: the reenactment, the orbit and the `.ply` export, all from `assets`.
+fn steps(a: &DemoArgs, assets: &Path) -> (ReenactArgs, OrbitArgs, ExportPlyArgs) {
+    let src = || SourceArgs {
+        ckpt: assets.join("weights.safetensors"),
+        flame: PathBuf::from(SYNTHETIC_FLAME),
+        source: assets.join("source.png"),
+        source_record: Some(assets.join("source.json")),
+        source_key: None,
+        preset: None,
+        n_shape: 300,
+        n_exp: 100,
+        fresh_noise: false,
+    };
+    let reenact = ReenactArgs {
+        src: src(),
+        driver: Some(assets.join("driver.json")),
+        output: a.output.join("reenact.mp4"),
+        side_by_side: true,
+        driver_video: None,
+        fps: None,
+        start: 0,
+        max_frames: None,
+        batch: 4,
+        no_watermark: a.no_watermark,
+    };
+    let orbit = OrbitArgs {
+        src: src(),
+        output: a.output.join("orbit.mp4"),
+        expression: ExpressionArgs::default(),
+        yaw: 35.0,
+        pitch: 15.0,
+        frames: 75,
+        fps: 25.0,
+        batch: 4,
+        no_watermark: a.no_watermark,
+    };
+    let ply = ExportPlyArgs {
+        src: src(),
+        output: a.output.join("avatar.ply"),
+        expression: ExpressionArgs::default(),
+    };
+    (reenact, orbit, ply)
 }
 
 /// `assets/demo` from the working directory, else beside the source tree this binary was built
@@ -67,48 +114,13 @@ pub fn run(a: DemoArgs) -> Result<()> {
     }
     std::fs::create_dir_all(&a.output)
         .with_context(|| format!("creating {}", a.output.display()))?;
-    let src = || SourceArgs {
-        ckpt: assets.join("weights.safetensors"),
-        flame: PathBuf::from(SYNTHETIC_FLAME),
-        source: assets.join("source.png"),
-        source_record: Some(assets.join("source.json")),
-        source_key: None,
-        preset: None,
-        n_shape: 300,
-        n_exp: 100,
-        fresh_noise: false,
-    };
+    let (reenact, orbit, ply) = steps(&a, &assets);
     eprintln!("1/4 reenactment (driver | result)");
-    crate::cmd_reenact::run(ReenactArgs {
-        src: src(),
-        driver: Some(assets.join("driver.json")),
-        output: a.output.join("reenact.mp4"),
-        side_by_side: true,
-        driver_video: None,
-        fps: None,
-        start: 0,
-        max_frames: None,
-        batch: 4,
-        no_watermark: false,
-    })?;
+    crate::cmd_reenact::run(reenact)?;
     eprintln!("2/4 orbit");
-    crate::cmd_orbit::run_orbit(OrbitArgs {
-        src: src(),
-        output: a.output.join("orbit.mp4"),
-        expression: ExpressionArgs::default(),
-        yaw: 35.0,
-        pitch: 15.0,
-        frames: 75,
-        fps: 25.0,
-        batch: 4,
-        no_watermark: false,
-    })?;
+    crate::cmd_orbit::run_orbit(orbit)?;
     eprintln!("3/4 Gaussians as .ply");
-    crate::cmd_orbit::run_export_ply(ExportPlyArgs {
-        src: src(),
-        output: a.output.join("avatar.ply"),
-        expression: ExpressionArgs::default(),
-    })?;
+    crate::cmd_orbit::run_export_ply(ply)?;
     eprintln!("4/4 tracking a real photo (astronaut.jpg, public domain: NASA via scikit-image)");
     let tracker = Tracker::new(Path::new(SYNTHETIC_FLAME))?;
     let photo = tracker.track_photo_file(
@@ -128,4 +140,27 @@ pub fn run(a: DemoArgs) -> Result<()> {
         a.output.display()
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Debug, Parser)]
+    struct Cli {
+        #[command(flatten)]
+        demo: DemoArgs,
+    }
+
+    #[test]
+    fn no_watermark_reaches_both_videos() {
+        for (flag, want) in [(None, false), (Some("--no-watermark"), true)] {
+            let argv: Vec<&str> = std::iter::once("demo").chain(flag).collect();
+            let a = Cli::try_parse_from(argv).unwrap().demo;
+            assert_eq!(a.no_watermark, want);
+            let (reenact, orbit, _) = steps(&a, Path::new("assets/demo"));
+            assert_eq!((reenact.no_watermark, orbit.no_watermark), (want, want));
+        }
+    }
 }

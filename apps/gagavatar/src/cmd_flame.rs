@@ -1,6 +1,6 @@
 //! `gagavatar flame ...`: FLAME utilities (synthetic asset, mesh export).
 
-use gagavatar_splat::scene::write_atomic;
+use gagavatar_formats::atomic::write_atomic;
 use std::fmt::Write as _;
 use std::path::PathBuf;
 

@@ -9,9 +9,10 @@ use candle_core::{DType, Device, Tensor};
 use clap::Args;
 use gagavatar_flame::{BasisLayout, FlameAsset, FlameModel, LoadOptions, TrackedFrame};
 use gagavatar_formats::image::DecodeOptions;
-use gagavatar_net::checkpoint::{self, check_keys, read_weights, write_safetensors, write_tensors};
+use gagavatar_net::checkpoint::{
+    self, check_keys, read_weights, write_safetensors, write_tensors, write_torch_checkpoint,
+};
 use gagavatar_net::style_unet::Noise;
-use gagavatar_net::torch_writer::write_torch_checkpoint;
 use gagavatar_net::ModelConfig;
 use gagavatar_ops::{resize, ResizeMode};
 

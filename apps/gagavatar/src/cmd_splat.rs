@@ -4,7 +4,7 @@
 use anyhow::{bail, Context, Result};
 use candle_core::{DType, Device, Tensor};
 use clap::Args;
-use gagavatar_splat::scene::write_atomic;
+use gagavatar_formats::atomic::write_atomic;
 use gagavatar_splat::testscene::{avatar_scene, Regime};
 use gagavatar_splat::{splat, Camera, GaussianScene, Gaussians};
 use serde::{Deserialize, Serialize};

@@ -205,7 +205,7 @@ pub fn run_train(a: TrainArgs) -> Result<()> {
     } else {
         let out = a.out.as_ref().context("--out RUN is required")?;
         let mut cfg = match (&a.config, &a.preset) {
-            (Some(path), _) => TrainConfig::read(path)?,
+            (Some(path), _) => TrainConfig::read_with_steps(path, a.steps)?,
             (None, Some(p)) => TrainConfig::preset(p)?,
             (None, None) => bail!("choose --preset tiny|release or --config FILE"),
         };
@@ -372,7 +372,7 @@ pub fn run_eval(a: crate::cmd_eval::EvalArgs) -> Result<()> {
     if let Some(path) = &a.json {
         let mut text = serde_json::to_string_pretty(&report.to_json())?;
         text.push('\n');
-        gagavatar_splat::scene::write_atomic(path, text.as_bytes())?;
+        gagavatar_formats::atomic::write_atomic(path, text.as_bytes())?;
         eprintln!("wrote {}", path.display());
     }
     if let Some(path) = &a.grid {

@@ -7,7 +7,8 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use gagavatar_data::pyobj::{read_pickle, DType, DictKey, PyValue};
+use gagavatar_formats::numpy::DType;
+use gagavatar_formats::pickle::{read_pickle, DictKey, PyValue};
 
 fn key_str(k: &DictKey) -> String {
     match k {

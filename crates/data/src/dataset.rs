@@ -19,11 +19,11 @@ use image::RgbImage;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{io_err, DataError, Result};
-use crate::fsutil::write_atomic;
 use crate::images::{decode_image, read_image_file};
-use crate::lmdb::{write_lmdb, LmdbReader};
 use crate::names::{group_by_video, sort_frame_names};
 use crate::records::{read_records, write_records};
+use gagavatar_formats::atomic::write_atomic;
+use gagavatar_formats::lmdb::{write_lmdb, LmdbReader};
 
 pub const SPLITS_FILE: &str = "dataset.json";
 pub const RELEASE_RECORDS_FILE: &str = "optim.pkl";
@@ -58,7 +58,7 @@ impl DatasetSplits {
             reason: e.to_string(),
         })?;
         text.push('\n');
-        write_atomic(path, text.as_bytes())
+        Ok(write_atomic(path, text.as_bytes())?)
     }
 
     /// `(split name, frame names)` for the three splits.

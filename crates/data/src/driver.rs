@@ -18,9 +18,9 @@ use serde_json::Value;
 
 use crate::error::{io_err, DataError, Result};
 use crate::images::{decode_image, read_image_file};
-use crate::lmdb::LmdbReader;
 use crate::names::frame_name_cmp;
 use crate::records::read_records;
+use gagavatar_formats::lmdb::LmdbReader;
 
 /// The release's video frame rate, used for pickled sequences (which carry none).
 pub const DEFAULT_FPS: f64 = 25.0;
@@ -67,12 +67,14 @@ fn tracked_pickle(dir: &Path, prefer: [&str; 2]) -> Result<PathBuf> {
 
 fn flame_record_error(path: &Path, frame: String, e: FlameError) -> DataError {
     match e {
-        FlameError::Record { field, reason } => DataError::Record {
-            path: path.to_owned(),
-            frame,
-            field,
-            reason,
-        },
+        FlameError::Record { field, reason } | FlameError::RecordFile { field, reason, .. } => {
+            DataError::Record {
+                path: path.to_owned(),
+                frame,
+                field,
+                reason,
+            }
+        }
         other => DataError::Record {
             path: path.to_owned(),
             frame,
@@ -279,30 +281,58 @@ fn ordered_frames(records: BTreeMap<String, TrackedFrame>) -> Vec<DriverFrame> {
 pub(crate) fn open_optional_lmdb(dir: &Path) -> Result<Option<LmdbReader>> {
     let p = dir.join("img_lmdb");
     if p.exists() {
-        LmdbReader::open(&p).map(Some)
+        Ok(Some(LmdbReader::open(&p)?))
     } else {
         Ok(None)
     }
 }
 
+/// The first bytes of a file (enough to tell what it is).
+fn read_head(path: &Path) -> Result<Vec<u8>> {
+    use std::io::Read;
+    let mut head = Vec::with_capacity(64);
+    std::fs::File::open(path)
+        .and_then(|f| f.take(64).read_to_end(&mut head))
+        .map_err(io_err(path, "cannot read"))?;
+    Ok(head)
+}
+
 /// How many available names an error lists.
 const SHOWN_KEYS: usize = 5;
 
-/// The source record: a `.json` record file, or a frame of a release pickle (`optim.pkl` /
-/// `smoothed.pkl`, or a tracked folder, where `optim.pkl` is preferred) named by `key`.
+/// The source record: a JSON record file, or a frame of a release pickle (`optim.pkl` /
+/// `smoothed.pkl`, or a tracked folder, where `optim.pkl` is preferred) named by `key`. The
+/// kind is read from the file's first bytes; a file that is neither (a photo given by mistake)
+/// is refused with what it is.
 pub fn read_source_record(path: &Path, key: Option<&str>) -> Result<TrackedFrame> {
-    let is_json = path
-        .extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("json"));
-    if is_json && !path.is_dir() {
-        return TrackedFrame::from_json_file(path).map_err(|e| match e {
-            FlameError::Io { source, .. } => io_err(path, "cannot read")(source),
-            other => flame_record_error(path, "(source record)".into(), other),
-        });
-    }
     let pkl = if path.is_dir() {
         tracked_pickle(path, ["optim.pkl", "smoothed.pkl"])?
     } else {
+        let head = read_head(path)?;
+        let is_pickle = head.first() == Some(&0x80);
+        if let (Some(kind), false) = (gagavatar_formats::sniff::describe(&head), is_pickle) {
+            return Err(DataError::Layout {
+                path: path.to_owned(),
+                reason: format!(
+                    "this is {kind}, not a tracking record: give a tracked-frame JSON record \
+                     (shapecode, expcode, posecode, eyecode, transform_matrix) or a tracker's \
+                     optim.pkl with --source-key"
+                ),
+            });
+        }
+        let json_like = head
+            .iter()
+            .find(|b| !b.is_ascii_whitespace())
+            .is_some_and(|&b| b == b'{');
+        let is_json_name = path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("json"));
+        if json_like || (is_json_name && !is_pickle) {
+            return TrackedFrame::from_json_file(path).map_err(|e| match e {
+                FlameError::Io { err, .. } => io_err(path, "cannot read")(err),
+                other => flame_record_error(path, "(source record)".into(), other),
+            });
+        }
         path.to_owned()
     };
     let mut records = read_records(&pkl)?;

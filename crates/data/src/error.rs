@@ -6,13 +6,18 @@ use std::path::PathBuf;
 
 #[derive(Debug, thiserror::Error)]
 pub enum DataError {
-    #[error("{path}: {action}: {source}")]
+    /// The cause is part of the message and deliberately not a `source()`, which the CLI
+    /// would print a second time.
+    #[error("{}: {action}: {err}", path.display())]
     Io {
         path: PathBuf,
         /// What was being done ("cannot read", "cannot write", ...).
         action: &'static str,
-        source: std::io::Error,
+        err: std::io::Error,
     },
+    /// A file whose format (pickle, LMDB, image, ...) cannot be read; the message names it.
+    #[error(transparent)]
+    Format(#[from] gagavatar_formats::FormatError),
     /// A pickle that cannot be parsed, or holds something other than plain data.
     #[error("{path}: {reason}")]
     Pickle { path: PathBuf, reason: String },
@@ -25,8 +30,6 @@ pub enum DataError {
         field: String,
         reason: String,
     },
-    #[error("{path}: not a readable LMDB environment: {reason}")]
-    Lmdb { path: PathBuf, reason: String },
     #[error("{path}: image `{key}`: {reason}")]
     Image {
         path: PathBuf,
@@ -72,9 +75,5 @@ pub(crate) fn io_err(
     action: &'static str,
 ) -> impl FnOnce(std::io::Error) -> DataError {
     let path = path.into();
-    move |source| DataError::Io {
-        path,
-        action,
-        source,
-    }
+    move |err| DataError::Io { path, action, err }
 }

@@ -1,40 +1,19 @@
-//! Images stored as LMDB values (or files): PNG / JPEG bytes, or, as the release's fallback, a
-//! `torch.save`d tensor (`[3,H,W]` or `[H,W,3]`, optionally with a leading batch of 1; uint8, or
-//! floats in [0, 1]).
-//!
-//! The tensor is read by `gagavatar_flame::read_torch_zip` (our data-only torch reader), which
-//! takes a file path: the bytes go through a private temporary file that is removed afterwards.
+//! Images stored as LMDB values (or files): PNG / JPEG bytes (decoded by
+//! `gagavatar_formats::image`, which reads the format from the bytes), or, as the release's
+//! fallback, a `torch.save`d tensor (`[3,H,W]` or `[H,W,3]`, optionally with a leading batch of
+//! 1; uint8, or floats in [0, 1]) read by `gagavatar_formats::torch_zip`.
 
-use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::path::Path;
 
-use gagavatar_flame::asset::RawData;
+use gagavatar_formats::image::DecodeOptions;
+use gagavatar_formats::tensor::RawData;
+use gagavatar_formats::FormatError;
 use image::RgbImage;
 
 use crate::error::{DataError, Result};
 
 /// Largest width or height accepted (a corrupt header could otherwise ask for gigabytes).
-pub const MAX_SIDE: u32 = 16384;
-
-/// What the bytes are, from their first bytes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ImageKind {
-    Png,
-    Jpeg,
-    TorchZip,
-}
-
-pub fn sniff(bytes: &[u8]) -> Option<ImageKind> {
-    if bytes.starts_with(b"\x89PNG\r\n\x1a\n") {
-        Some(ImageKind::Png)
-    } else if bytes.starts_with(&[0xff, 0xd8, 0xff]) {
-        Some(ImageKind::Jpeg)
-    } else if bytes.starts_with(b"PK\x03\x04") {
-        Some(ImageKind::TorchZip)
-    } else {
-        None
-    }
-}
+pub use gagavatar_formats::image::MAX_SIDE;
 
 /// Decodes an image value; `path` and `key` only label errors (the LMDB and the entry, or the
 /// file and its name).
@@ -44,14 +23,13 @@ pub fn decode_image(bytes: &[u8], path: &Path, key: &str) -> Result<RgbImage> {
         key: key.to_owned(),
         reason,
     };
-    match sniff(bytes) {
-        Some(ImageKind::Png) => decode_with(bytes, image::ImageFormat::Png).map_err(err),
-        Some(ImageKind::Jpeg) => decode_with(bytes, image::ImageFormat::Jpeg).map_err(err),
-        Some(ImageKind::TorchZip) => decode_torch(bytes).map_err(err),
-        None => Err(err(format!(
-            "{} bytes that are neither PNG, JPEG nor a torch-saved tensor",
-            bytes.len()
-        ))),
+    if bytes.starts_with(b"PK\x03\x04") {
+        return decode_torch(bytes).map_err(err);
+    }
+    match gagavatar_formats::image::decode_image(bytes, key, &DecodeOptions::default()) {
+        Ok(img) => Ok(img.rgb),
+        Err(FormatError::Image { reason, .. }) => Err(err(reason)),
+        Err(other) => Err(err(other.to_string())),
     }
 }
 
@@ -65,48 +43,9 @@ pub fn read_image_file(path: &Path) -> Result<RgbImage> {
     decode_image(&bytes, path, &name)
 }
 
-fn decode_with(bytes: &[u8], format: image::ImageFormat) -> std::result::Result<RgbImage, String> {
-    let mut reader = image::ImageReader::with_format(std::io::Cursor::new(bytes), format);
-    let mut limits = image::Limits::default();
-    limits.max_image_width = Some(MAX_SIDE);
-    limits.max_image_height = Some(MAX_SIDE);
-    reader.limits(limits);
-    let img = reader
-        .decode()
-        .map_err(|e| format!("corrupt {format:?} data: {e}"))?;
-    // Grey images are expanded and an alpha channel is dropped: the model takes RGB.
-    Ok(img.to_rgb8())
-}
-
-static TEMP_COUNTER: AtomicU64 = AtomicU64::new(0);
-
-/// Removes the temporary file when dropped, on every path out.
-struct TempFile(PathBuf);
-
-impl Drop for TempFile {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_file(&self.0);
-    }
-}
-
 fn decode_torch(bytes: &[u8]) -> std::result::Result<RgbImage, String> {
-    let name = format!(
-        "gagavatar-data-{}-{}.pt",
-        std::process::id(),
-        TEMP_COUNTER.fetch_add(1, Ordering::Relaxed)
-    );
-    let tmp = TempFile(std::env::temp_dir().join(name));
-    std::fs::write(&tmp.0, bytes)
-        .map_err(|e| format!("cannot stage the torch tensor in {}: {e}", tmp.0.display()))?;
-    let tensors = gagavatar_flame::read_torch_zip(&tmp.0).map_err(|e| {
-        // The temp path means nothing to the user; keep the reason only.
-        let text = e.to_string();
-        let reason = text
-            .split_once(": ")
-            .map(|(_, r)| r.to_owned())
-            .unwrap_or(text);
-        format!("torch tensor: {reason}")
-    })?;
+    let tensors = gagavatar_formats::torch_zip::read_torch_zip_bytes(bytes, "torch tensor")
+        .map_err(|e| e.to_string())?;
     let tensor = match tensors.len() {
         1 => tensors.into_values().next(),
         n => {

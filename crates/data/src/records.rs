@@ -15,13 +15,13 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use gagavatar_flame::TrackedFrame;
+use gagavatar_flame::{FlameError, TrackedFrame};
 
 use crate::error::{DataError, Result};
-use crate::fsutil::write_atomic;
 use crate::names::frame_name_cmp;
-use crate::pickle_out::to_pickle;
-use crate::pyobj::{read_pickle, ArrayData, DictKey, NdArray, PyValue};
+use gagavatar_formats::atomic::write_atomic;
+use gagavatar_formats::numpy::{ArrayData, NdArray};
+use gagavatar_formats::pickle::{read_pickle, to_pickle, DictKey, PyValue};
 
 /// Component counts of the release's codes.
 pub const SHAPE_COMPONENTS: usize = 300;
@@ -101,14 +101,20 @@ pub fn frame_from_value(path: &Path, name: &str, value: &PyValue) -> Result<Trac
             Some([b[0], b[1], b[2], b[3]])
         }
     };
-    Ok(TrackedFrame {
+    let record = TrackedFrame {
         shapecode: vector("shapecode", SHAPE_COMPONENTS)?,
         expcode: vector("expcode", EXPRESSION_COMPONENTS)?,
         posecode: vector("posecode", POSE_COMPONENTS)?,
         eyecode: vector("eyecode", EYE_COMPONENTS)?,
         transform_matrix: Some(transform),
         bbox,
-    })
+    };
+    // Finite, and within what FLAME codes and cameras are.
+    record.validate().map_err(|e| match e {
+        FlameError::Record { field, reason } => err(&field, reason),
+        other => err("<record>", other.to_string()),
+    })?;
+    Ok(record)
 }
 
 fn shape_text(shape: &[usize]) -> String {
@@ -192,7 +198,7 @@ fn nested_numbers(v: &PyValue) -> Option<(Vec<usize>, Vec<f64>)> {
 /// Writes records as the release's pickle (protocol 4, float32 numpy arrays), atomically.
 pub fn write_records(path: &Path, records: &BTreeMap<String, TrackedFrame>) -> Result<()> {
     let bytes = records_to_pickle(path, records)?;
-    write_atomic(path, &bytes)
+    Ok(write_atomic(path, &bytes)?)
 }
 
 /// The pickle bytes `write_records` writes (`path` only names the target in errors).

@@ -7,10 +7,10 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use common::{data, f32s, TempDir};
-use gagavatar_data::pickle_out::to_pickle;
-use gagavatar_data::pyobj::{parse_pickle, ArrayData, DictKey, NdArray, PyValue};
 use gagavatar_data::records::{read_records, records_from_value, records_to_pickle, write_records};
 use gagavatar_data::{DataError, TrackedFrame};
+use gagavatar_formats::numpy::{ArrayData, NdArray};
+use gagavatar_formats::pickle::{parse_pickle, to_pickle, DictKey, PyValue};
 
 const FIELDS: [&str; 6] = [
     "bbox",

@@ -24,13 +24,12 @@
 //! `full_lmk_bary_coords` (68 points without the pupils): the release's FLAME reads only the
 //! `_with_eye` pair (TRACKING.md section 4), so that is the 70-point set fitted and returned.
 
-use std::collections::BTreeMap;
 use std::path::Path;
 
-use candle_core::{DType, Device, Tensor};
+use gagavatar_formats::FormatError;
 
+use crate::embedding::{LandmarkEmbedding, DYNAMIC_ROWS};
 use crate::error::{FlameError, Result};
-use crate::landmarks::{LandmarkEmbedding, DYNAMIC_ROWS};
 
 pub const NUM_JOINTS: usize = 5;
 /// Pose-corrective inputs: 9 entries of `R - I` for each of the 4 non-root joints.
@@ -55,81 +54,9 @@ pub mod keys {
     pub const FULL_BARY: &str = "lmk_embeddings.full_lmk_bary_coords_with_eye";
 }
 
-#[derive(Debug, Clone, PartialEq)]
-pub enum RawData {
-    Float(Vec<f32>),
-    Int(Vec<i64>),
-}
-
-/// A tensor as read from a file, before any FLAME-specific checks.
-#[derive(Debug, Clone, PartialEq)]
-pub struct RawTensor {
-    pub shape: Vec<usize>,
-    pub data: RawData,
-    /// The dtype in the file, for error messages.
-    pub file_dtype: String,
-}
-
-pub type TensorMap = BTreeMap<String, RawTensor>;
-
-impl RawTensor {
-    pub fn float(shape: Vec<usize>, data: Vec<f32>) -> Self {
-        Self {
-            shape,
-            data: RawData::Float(data),
-            file_dtype: "F32".into(),
-        }
-    }
-
-    pub fn int(shape: Vec<usize>, data: Vec<i64>) -> Self {
-        Self {
-            shape,
-            data: RawData::Int(data),
-            file_dtype: "I64".into(),
-        }
-    }
-
-    /// Decodes little-endian row-major bytes of a candle dtype.
-    pub(crate) fn from_bytes(
-        key: &str,
-        dtype: DType,
-        shape: Vec<usize>,
-        bytes: &[u8],
-    ) -> Result<Self> {
-        let numel: usize = shape.iter().product();
-        if bytes.len() != numel * dtype.size_in_bytes() {
-            return Err(FlameError::Invalid {
-                key: key.to_owned(),
-                reason: format!(
-                    "{} bytes of data for {numel} elements of {dtype:?}",
-                    bytes.len()
-                ),
-            });
-        }
-        let file_dtype = format!("{dtype:?}");
-        let t = Tensor::from_raw_buffer(bytes, dtype, &[numel], &Device::Cpu)?;
-        let data = match dtype {
-            DType::F16 | DType::BF16 | DType::F32 | DType::F64 => {
-                RawData::Float(t.to_dtype(DType::F32)?.to_vec1::<f32>()?)
-            }
-            DType::U8 | DType::U32 | DType::I16 | DType::I32 | DType::I64 => {
-                RawData::Int(t.to_dtype(DType::I64)?.to_vec1::<i64>()?)
-            }
-            other => {
-                return Err(FlameError::DType {
-                    key: key.to_owned(),
-                    expected: "a float or integer dtype",
-                    found: format!("{other:?}"),
-                })
-            }
-        };
-        Ok(Self {
-            shape,
-            data,
-            file_dtype,
-        })
-    }
-}
+/// The generic tensor values the file readers return (defined with the readers in
+/// `gagavatar-formats`).
+pub use gagavatar_formats::tensor::{RawData, RawTensor, TensorMap};
 
 /// How the columns of `shapedirs` split into identity and expression bases.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -408,6 +335,36 @@ impl FlameAsset {
         self.faces.len()
     }
 
+    /// A 64-bit fingerprint of the model (template, faces, blendshapes, skinning; FNV-1a over
+    /// 32-bit words): equal for the same asset, different for another one (the synthetic
+    /// stand-in, another seed of it, the release's FLAME). Weights record the fingerprint of the
+    /// asset they were trained with, so a mismatch can be reported.
+    pub fn fingerprint(&self) -> u64 {
+        const PRIME: u64 = 0x0000_0100_0000_01b3;
+        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+        let mut eat = |word: u32| {
+            h ^= u64::from(word);
+            h = h.wrapping_mul(PRIME);
+        };
+        eat(self.n_vertices as u32);
+        eat(self.layout.shape as u32);
+        eat(self.layout.expression as u32);
+        for v in self
+            .v_template
+            .iter()
+            .chain(&self.shapedirs)
+            .chain(&self.posedirs)
+            .chain(&self.j_regressor)
+            .chain(&self.weights)
+        {
+            eat(v.to_bits());
+        }
+        for f in &self.faces {
+            f.iter().for_each(|&i| eat(i));
+        }
+        h
+    }
+
     pub fn n_components(&self) -> usize {
         self.layout.shape + self.layout.expression
     }
@@ -485,94 +442,42 @@ impl FlameAsset {
     }
 }
 
-/// Reads a whole tensor file, dispatching on its first bytes (a zip is a torch checkpoint).
+/// Reads a whole tensor file, dispatching on its first bytes (a zip is a torch checkpoint,
+/// anything else must be safetensors).
 pub fn read_tensor_file(path: &Path) -> Result<TensorMap> {
     use std::io::Read;
     let mut head = [0u8; 4];
     let n = std::fs::File::open(path)
         .and_then(|mut f| f.read(&mut head))
-        .map_err(|source| FlameError::Io {
-            path: path.to_owned(),
-            source,
-        })?;
+        .map_err(FormatError::io(path, "cannot read"))?;
     if n == 4 && &head == b"PK\x03\x04" {
-        return crate::pth::read_torch_zip(path);
+        return Ok(gagavatar_formats::torch_zip::read_torch_zip(path)?);
     }
-    let bytes = std::fs::read(path).map_err(|source| FlameError::Io {
-        path: path.to_owned(),
-        source,
-    })?;
-    read_safetensors(&bytes).map_err(|e| match e {
-        FlameError::Safetensors { reason, .. } => FlameError::Safetensors {
-            path: path.to_owned(),
+    match gagavatar_formats::safetensors::read_safetensors(path) {
+        Ok(file) => Ok(file.tensors),
+        Err(FormatError::Safetensors { label, reason }) => Err(FormatError::Safetensors {
+            label,
             reason: format!("{reason} (and it is not a torch zip either)"),
-        },
-        other => other,
-    })
+        }
+        .into()),
+        Err(other) => Err(other.into()),
+    }
 }
 
 /// Parses safetensors bytes (keys already flat).
 pub fn read_safetensors(bytes: &[u8]) -> Result<TensorMap> {
-    use safetensors::Dtype as S;
-    let st = safetensors::SafeTensors::deserialize(bytes).map_err(|e| FlameError::Safetensors {
-        path: Default::default(),
-        reason: e.to_string(),
-    })?;
-    let mut out = TensorMap::new();
-    for (name, view) in st.iter() {
-        let dtype = match view.dtype() {
-            S::F16 => DType::F16,
-            S::BF16 => DType::BF16,
-            S::F32 => DType::F32,
-            S::F64 => DType::F64,
-            S::U8 => DType::U8,
-            S::U32 => DType::U32,
-            S::I16 => DType::I16,
-            S::I32 => DType::I32,
-            S::I64 => DType::I64,
-            other => {
-                return Err(FlameError::DType {
-                    key: name.to_owned(),
-                    expected: "a float or integer dtype",
-                    found: format!("{other:?}"),
-                })
-            }
-        };
-        let raw = RawTensor::from_bytes(name, dtype, view.shape().to_vec(), view.data())?;
-        out.insert(name.to_owned(), raw);
-    }
-    Ok(out)
+    Ok(gagavatar_formats::safetensors::parse_safetensors(bytes, "safetensors data")?.tensors)
 }
 
 /// Serialises f32/i64 tensors to safetensors bytes.
 pub fn write_safetensors(map: &TensorMap) -> Result<Vec<u8>> {
-    let mut bufs: Vec<(String, safetensors::Dtype, Vec<usize>, Vec<u8>)> = Vec::new();
-    for (k, t) in map {
-        let (dtype, bytes) = match &t.data {
-            RawData::Float(v) => (
-                safetensors::Dtype::F32,
-                v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>(),
-            ),
-            RawData::Int(v) => (
-                safetensors::Dtype::I64,
-                v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>(),
-            ),
-        };
-        bufs.push((k.clone(), dtype, t.shape.clone(), bytes));
-    }
-    let views = bufs
+    use gagavatar_formats::safetensors::{to_safetensors_bytes, TensorOut};
+    let tensors: Vec<TensorOut> = map
         .iter()
-        .map(|(k, d, s, b)| {
-            safetensors::tensor::TensorView::new(*d, s.clone(), b)
-                .map(|v| (k.clone(), v))
-                .map_err(|e| FlameError::Invalid {
-                    key: k.clone(),
-                    reason: e.to_string(),
-                })
+        .map(|(k, t)| match &t.data {
+            RawData::Float(v) => TensorOut::f32(k.clone(), t.shape.clone(), v.as_slice()),
+            RawData::Int(v) => TensorOut::i64(k.clone(), t.shape.clone(), v.as_slice()),
         })
-        .collect::<Result<Vec<_>>>()?;
-    safetensors::serialize(views, None).map_err(|e| FlameError::Safetensors {
-        path: Default::default(),
-        reason: e.to_string(),
-    })
+        .collect();
+    Ok(to_safetensors_bytes(&tensors, &Default::default())?)
 }

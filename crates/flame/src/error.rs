@@ -5,17 +5,13 @@ use std::path::PathBuf;
 
 #[derive(Debug, thiserror::Error)]
 pub enum FlameError {
-    #[error("{path}: cannot read")]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
-    #[error("{path}: not a readable torch zip checkpoint: {reason}")]
-    Archive { path: PathBuf, reason: String },
-    #[error("{path}: unsupported pickle content: {reason}")]
-    Pickle { path: PathBuf, reason: String },
-    #[error("{path}: not a readable safetensors file: {reason}")]
-    Safetensors { path: PathBuf, reason: String },
+    /// The cause is part of the message and deliberately not a `source()`, which the CLI
+    /// would print a second time.
+    #[error("{}: cannot read: {err}", path.display())]
+    Io { path: PathBuf, err: std::io::Error },
+    /// A file that cannot be read as a tensor file (torch zip or safetensors) at all.
+    #[error(transparent)]
+    Format(#[from] gagavatar_formats::FormatError),
     #[error("FLAME asset: missing key `{key}`")]
     MissingKey { key: String },
     #[error("FLAME asset: key `{key}` has shape {found:?}, expected {expected}")]
@@ -40,10 +36,23 @@ pub enum FlameError {
     },
     #[error("tracked-frame record: field `{field}`: {reason}")]
     Record { field: String, reason: String },
+    /// A record read from a file (`TrackedFrame::from_json_file`): the message names it.
+    #[error("{}: tracked-frame record: field `{field}`: {reason}", path.display())]
+    RecordFile {
+        path: PathBuf,
+        field: String,
+        reason: String,
+    },
     #[error("FLAME input `{name}`: {reason}")]
     Input { name: &'static str, reason: String },
     #[error("tensor computation failed: {0}")]
-    Candle(#[from] candle_core::Error),
+    Candle(candle_core::Error),
+}
+
+impl From<candle_core::Error> for FlameError {
+    fn from(e: candle_core::Error) -> Self {
+        FlameError::Candle(e)
+    }
 }
 
 pub type Result<T> = std::result::Result<T, FlameError>;

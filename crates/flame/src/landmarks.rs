@@ -22,23 +22,11 @@ use crate::error::{FlameError, Result};
 use crate::lbs::FlameModel;
 use crate::rodrigues::{matmul3, rodrigues_f64};
 
-/// Rows of the dynamic-contour table: yaw 0..39 degrees, then -1..-39.
-pub const DYNAMIC_ROWS: usize = 79;
+pub use crate::embedding::{LandmarkEmbedding, DYNAMIC_ROWS};
+
 pub const MAX_YAW_DEG: f64 = 39.0;
 /// The release camera's focal length in NDC units (spec section 2).
 pub const NDC_FOCAL: f64 = 12.0;
-
-#[derive(Debug, Clone, PartialEq, Default)]
-pub struct LandmarkEmbedding {
-    pub static_faces: Vec<u32>,
-    pub static_bary: Vec<[f32; 3]>,
-    /// `[79, dynamic_count]` row-major.
-    pub dynamic_faces: Vec<u32>,
-    pub dynamic_bary: Vec<[f32; 3]>,
-    pub dynamic_count: usize,
-    pub full_faces: Vec<u32>,
-    pub full_bary: Vec<[f32; 3]>,
-}
 
 /// Yaw (radians) of a rotation matrix, as FLAME fitters compute it.
 pub fn yaw_of(r: &[[f64; 3]; 3]) -> f64 {

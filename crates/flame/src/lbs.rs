@@ -7,8 +7,8 @@
 use candle_core::{DType, Device, Tensor};
 
 use crate::asset::{FlameAsset, NUM_JOINTS, POSE_BASIS};
+use crate::embedding::LandmarkEmbedding;
 use crate::error::{FlameError, Result};
-use crate::landmarks::LandmarkEmbedding;
 use crate::rodrigues::rodrigues;
 use crate::skinning::{SharedSkinning, Skinning, TRANSFORM_LEN};
 
@@ -104,6 +104,8 @@ impl FlameIdentity {
 #[derive(Debug, Clone)]
 pub struct FlameModel {
     pub config: FlameConfig,
+    /// [`FlameAsset::fingerprint`] of the asset this model was built from.
+    pub asset_fingerprint: u64,
     pub device: Device,
     pub dtype: DType,
     pub n_vertices: usize,
@@ -238,6 +240,7 @@ impl FlameModel {
         };
         Ok(Self {
             config,
+            asset_fingerprint: asset.fingerprint(),
             device: device.clone(),
             dtype,
             n_vertices: nv,

@@ -3,11 +3,10 @@
 //! synthetic stand-in asset with the release's exact layout.
 
 pub mod asset;
+pub mod embedding;
 pub mod error;
 pub mod landmarks;
 pub mod lbs;
-pub mod pickle;
-mod pth;
 pub mod record;
 pub mod rodrigues;
 pub mod skinning;
@@ -17,7 +16,6 @@ pub use asset::{BasisLayout, FlameAsset, LoadOptions};
 pub use error::{FlameError, Result};
 pub use landmarks::{project_point, project_points, LandmarkEmbedding, Landmarks};
 pub use lbs::{FlameConfig, FlameIdentity, FlameModel, FlameOutput, FlameParams, FLAME_SCALE};
-pub use pth::read_torch_zip;
 pub use record::TrackedFrame;
 pub use rodrigues::rodrigues;
 pub use synth::{synthesize, synthesize_with, BasisMotion};

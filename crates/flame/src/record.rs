@@ -3,6 +3,10 @@
 //! single nested row (`[[...]]`, as a `[1, N]` numpy array dumps). Shorter codes are zero-padded
 //! to the model's counts, because trackers often keep fewer components; longer ones are an error,
 //! because silently dropping components would change the head.
+//!
+//! Values far outside what FLAME codes and cameras are (a shape code of 1e30 renders a black
+//! frame, not an error of its own) are refused when a record is read: codes beyond
+//! [`MAX_CODE_ABS`], camera and box values beyond [`MAX_CAMERA_ABS`].
 
 use std::path::Path;
 
@@ -11,6 +15,14 @@ use serde_json::Value;
 
 use crate::error::{FlameError, Result};
 use crate::lbs::{FlameModel, FlameParams};
+
+/// Largest magnitude accepted in `shapecode`, `expcode`, `posecode`, `eyecode`. FLAME's shape
+/// and expression codes are in standard deviations (trackers keep them within about ±5) and the
+/// poses in radians; 1000 is far beyond any head and still catches units mistakes and garbage.
+pub const MAX_CODE_ABS: f64 = 1e3;
+/// Largest magnitude accepted in `transform_matrix` and `bbox` (rotations are within ±1, the
+/// release's camera sits about 10 units away, boxes are in pixels).
+pub const MAX_CAMERA_ABS: f64 = 1e6;
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct TrackedFrame {
@@ -109,22 +121,89 @@ impl TrackedFrame {
                 Some(arr)
             }
         };
-        Ok(Self {
+        let r = Self {
             shapecode: required(obj, "shapecode")?,
             expcode: required(obj, "expcode")?,
             posecode: required(obj, "posecode")?,
             eyecode: required(obj, "eyecode")?,
             transform_matrix,
             bbox,
-        })
+        };
+        r.validate()?;
+        Ok(r)
     }
 
+    /// Checks that every value is one a FLAME record can hold: finite, codes within
+    /// [`MAX_CODE_ABS`], camera and box within [`MAX_CAMERA_ABS`]. The error names the field and
+    /// the element.
+    pub fn validate(&self) -> Result<()> {
+        let check = |field: &str, values: &mut dyn Iterator<Item = f64>, max: f64| {
+            for (i, x) in values.enumerate() {
+                if !x.is_finite() {
+                    return Err(rec_err(field, format!("element {i} is not finite ({x})")));
+                }
+                if x.abs() > max {
+                    return Err(rec_err(
+                        field,
+                        format!(
+                            "element {i} is {x:e}, far outside what a FLAME record holds (at most                              {max:e} in magnitude)"
+                        ),
+                    ));
+                }
+            }
+            Ok(())
+        };
+        check(
+            "shapecode",
+            &mut self.shapecode.iter().copied(),
+            MAX_CODE_ABS,
+        )?;
+        check("expcode", &mut self.expcode.iter().copied(), MAX_CODE_ABS)?;
+        check("posecode", &mut self.posecode.iter().copied(), MAX_CODE_ABS)?;
+        check("eyecode", &mut self.eyecode.iter().copied(), MAX_CODE_ABS)?;
+        if let Some(tm) = &self.transform_matrix {
+            check(
+                "transform_matrix",
+                &mut tm.iter().flatten().copied(),
+                MAX_CAMERA_ABS,
+            )?;
+        }
+        if let Some(b) = &self.bbox {
+            check("bbox", &mut b.iter().copied(), MAX_CAMERA_ABS)?;
+        }
+        Ok(())
+    }
+
+    /// Reads a JSON record file; every error names the file. A file that is something else (a
+    /// photo, a video, a pickle) says what it is.
     pub fn from_json_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|source| FlameError::Io {
+        let bytes = std::fs::read(path).map_err(|err| FlameError::Io {
             path: path.to_owned(),
-            source,
+            err,
         })?;
-        Self::from_json_str(&text)
+        let file_err = |field: String, reason: String| FlameError::RecordFile {
+            path: path.to_owned(),
+            field,
+            reason,
+        };
+        if let Some(kind) = gagavatar_formats::sniff::describe(&bytes) {
+            return Err(file_err(
+                "<file>".into(),
+                format!(
+                    "this is {kind}, not a tracked-frame record (JSON with shapecode, expcode,                      posecode, eyecode)"
+                ),
+            ));
+        }
+        let text = std::str::from_utf8(&bytes).map_err(|_| {
+            file_err(
+                "<file>".into(),
+                "not text, so not a tracked-frame record (JSON)".into(),
+            )
+        })?;
+        Self::from_json_str(text).map_err(|e| match e {
+            FlameError::Record { field, reason } => file_err(field, reason),
+            other => other,
+        })
     }
 
     /// A batch of one, zero-padded to the model's component counts.

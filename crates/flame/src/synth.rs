@@ -23,7 +23,7 @@
 use std::f64::consts::PI;
 
 use crate::asset::{BasisLayout, FlameAsset, NUM_JOINTS, POSE_BASIS};
-use crate::landmarks::{LandmarkEmbedding, DYNAMIC_ROWS};
+use crate::embedding::{LandmarkEmbedding, DYNAMIC_ROWS};
 
 pub const SYNTH_VERTICES: usize = 5023;
 pub const SYNTH_FACES: usize = 9976;

@@ -10,6 +10,7 @@ use gagavatar_flame::asset::{read_tensor_file, write_safetensors, RawData, RawTe
 use gagavatar_flame::{
     BasisLayout, FlameAsset, FlameConfig, FlameError, FlameModel, LoadOptions, TrackedFrame,
 };
+use gagavatar_formats::FormatError;
 
 fn tiny_options() -> LoadOptions {
     LoadOptions {
@@ -199,9 +200,11 @@ fn truncated_and_garbage_files_fail_cleanly() {
         assert!(
             matches!(
                 e,
-                FlameError::Archive { .. }
-                    | FlameError::Pickle { .. }
-                    | FlameError::Safetensors { .. }
+                FlameError::Format(
+                    FormatError::TorchZip { .. }
+                        | FormatError::Pickle { .. }
+                        | FormatError::Safetensors { .. }
+                )
             ),
             "cut {cut}: {e}"
         );
@@ -210,14 +213,24 @@ fn truncated_and_garbage_files_fail_cleanly() {
     for cut in [0, 4, 100, st.len() - 1] {
         let e = assert_load_fails(&dir.file("t.safetensors", &st[..cut]));
         assert!(
-            matches!(e, FlameError::Safetensors { .. }),
+            matches!(e, FlameError::Format(FormatError::Safetensors { .. })),
             "cut {cut}: {e}"
         );
     }
     let e = assert_load_fails(&dir.file("g.bin", b"this is not a model"));
-    assert!(matches!(e, FlameError::Safetensors { .. }), "{e}");
+    assert!(
+        matches!(e, FlameError::Format(FormatError::Safetensors { .. })),
+        "{e}"
+    );
     let e = assert_load_fails(&dir.0.join("does-not-exist.pt"));
-    assert!(matches!(e, FlameError::Io { .. }), "{e}");
+    assert_eq!(
+        match &e {
+            FlameError::Format(f) => f.io_kind(),
+            _ => None,
+        },
+        Some(std::io::ErrorKind::NotFound),
+        "{e}"
+    );
     // Flipping bytes inside the pickle region must not panic either.
     for pos in (0..pt.len()).step_by(97) {
         let mut bad = pt.clone();

@@ -1,8 +1,14 @@
 //! Photos as users have them: the format is read from the bytes (PNG data named `.jpg` is common),
 //! EXIF orientation is applied (phones store portraits sideways plus a flag), transparency is
 //! composited onto black (the model's background), and a photo larger than the caller needs is
-//! downscaled right after decoding, row by row, so a 10000x10000 photo never exists in several
-//! full-size copies at once.
+//! downscaled *while* it is decoded, so a 10000x10000 photo never exists at full size:
+//!
+//! - PNG (not interlaced) is decoded row by row into an area-average downscaler;
+//! - a baseline JPEG that must shrink is decoded at 1/2, 1/4 or 1/8 size by the IDCT itself
+//!   (`jpeg-decoder`), then area-averaged to the exact size;
+//! - everything else (WebP, BMP, interlaced PNG, progressive or CMYK JPEG, and photos that need
+//!   no downscaling) is decoded whole, and only up to [`MAX_WHOLE_DECODE_BYTES`] of decoded
+//!   pixels, so a small hostile file cannot make the decoder allocate hundreds of megabytes.
 //!
 //! A header that asks for more than [`MAX_SIDE`] per side or [`MAX_PIXELS`] in all is refused
 //! before anything is allocated.
@@ -22,6 +28,10 @@ pub const MAX_SIDE: u32 = 16384;
 pub const MAX_PIXELS: u64 = 150_000_000;
 /// Allocation bound handed to the decoders: the RGB image at [`MAX_PIXELS`] plus decoder slack.
 const MAX_ALLOC: u64 = 1 << 30;
+/// Largest decoded buffer (width x height x bytes per pixel as the decoder outputs them) of a
+/// photo that cannot be decoded row by row or at reduced size: 96 MiB is a 32-megapixel RGB
+/// photo. With the RGB copy made from it, decoding stays under about 200 MB.
+pub const MAX_WHOLE_DECODE_BYTES: u64 = 96 << 20;
 
 /// The container formats recognised from the first bytes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -124,56 +134,412 @@ pub fn decode_image(
         Some(k) => k,
         None => return Err(err(unknown_format_reason(bytes))),
     };
+    if kind == ImageKind::Jpeg {
+        check_jpeg_data_length(bytes).map_err(err)?;
+    }
+    let streamed = match kind {
+        ImageKind::Png => decode_png_rows(bytes, opts),
+        ImageKind::Jpeg => decode_jpeg_scaled(bytes, opts),
+        _ => Ok(None),
+    }
+    .map_err(err)?;
+    let d = match streamed {
+        Some(d) => d,
+        None => decode_whole(bytes, kind, opts).map_err(err)?,
+    };
+    let mut dynimg = DynamicImage::ImageRgb8(d.rgb);
+    dynimg.apply_orientation(d.orientation);
+    let DynamicImage::ImageRgb8(rgb) = dynimg else {
+        unreachable!("apply_orientation keeps the pixel type")
+    };
+    let (ow, oh) = upright(d.width, d.height, d.orientation);
+    Ok(DecodedImage {
+        scale_to_original: ow as f64 / rgb.width().max(1) as f64,
+        rgb,
+        original_width: ow,
+        original_height: oh,
+        kind,
+        orientation: d.orientation,
+    })
+}
+
+/// A decoded photo as stored (before orientation), possibly already downscaled.
+struct Decoded {
+    rgb: RgbImage,
+    /// The stored size, before downscaling.
+    width: u32,
+    height: u32,
+    orientation: image::metadata::Orientation,
+}
+
+fn upright(w: u32, h: u32, o: image::metadata::Orientation) -> (u32, u32) {
+    if swaps_sides(o) {
+        (h, w)
+    } else {
+        (w, h)
+    }
+}
+
+/// Checks a stored size against the caps and `min_side`, and returns the size to decode to (the
+/// stored size, or the downscaled one that fits `fit_within`).
+fn target_size(
+    w: u32,
+    h: u32,
+    orientation: image::metadata::Orientation,
+    opts: &DecodeOptions,
+) -> Result<(u32, u32), String> {
+    check_size(w, h)?;
+    let (ow, oh) = upright(w, h, orientation);
+    if ow.min(oh) < opts.min_side {
+        return Err(format!(
+            "the image is {ow}x{oh} pixels; at least {m}x{m} is needed",
+            m = opts.min_side
+        ));
+    }
+    Ok(match opts.fit_within {
+        Some(limit) if w.max(h) > limit.max(1) => {
+            let s = limit.max(1) as f64 / w.max(h) as f64;
+            (
+                ((w as f64 * s).round() as u32).max(1),
+                ((h as f64 * s).round() as u32).max(1),
+            )
+        }
+        _ => (w, h),
+    })
+}
+
+/// Where decoded rows go: straight into the output, or through the area downscaler.
+enum RowSink {
+    /// Grows with the rows actually decoded, so a header promising a huge image allocates
+    /// nothing until its data arrives.
+    Copy {
+        data: Vec<u8>,
+        w: u32,
+        h: u32,
+    },
+    Shrink(AreaDownscaler),
+}
+
+impl RowSink {
+    fn new(w: u32, h: u32, nw: u32, nh: u32) -> Self {
+        if (nw, nh) == (w, h) {
+            RowSink::Copy {
+                data: Vec::new(),
+                w,
+                h,
+            }
+        } else {
+            RowSink::Shrink(AreaDownscaler::new(w, h, nw, nh))
+        }
+    }
+
+    fn push(&mut self, rgb_row: &[u8]) {
+        match self {
+            RowSink::Copy { data, .. } => data.extend_from_slice(rgb_row),
+            RowSink::Shrink(d) => d.push_row(rgb_row),
+        }
+    }
+
+    fn finish(self) -> Result<RgbImage, String> {
+        match self {
+            RowSink::Copy { data, w, h } => {
+                RgbImage::from_raw(w, h, data).ok_or_else(|| "the image data is truncated".into())
+            }
+            RowSink::Shrink(d) => Ok(d.finish()),
+        }
+    }
+}
+
+fn png_reason(e: png::DecodingError) -> String {
+    match e {
+        png::DecodingError::IoError(io) if io.kind() == std::io::ErrorKind::UnexpectedEof => {
+            "the PNG data is truncated".into()
+        }
+        png::DecodingError::LimitsExceeded => format!(
+            "the PNG image is too large to decode (more than {} MiB)",
+            MAX_ALLOC >> 20
+        ),
+        other => format!("corrupt PNG data ({other})"),
+    }
+}
+
+/// A non-interlaced PNG, row by row into the output size; `None` for an interlaced one.
+fn decode_png_rows(bytes: &[u8], opts: &DecodeOptions) -> Result<Option<Decoded>, String> {
+    // The size straight from IHDR (always the first chunk), so a header stating an oversized
+    // image is called that even when the file ends before its data (the reader below would
+    // stop at the missing data first).
+    if bytes.len() >= 24 && &bytes[12..16] == b"IHDR" {
+        let be = |at: usize| {
+            u32::from_be_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]])
+        };
+        let (w, h) = (be(16), be(20));
+        if w > 0 && h > 0 {
+            check_size(w, h)?;
+        }
+    }
+    let mut dec = png::Decoder::new_with_limits(
+        Cursor::new(bytes),
+        png::Limits {
+            bytes: MAX_ALLOC as usize,
+        },
+    );
+    // 8-bit gray, gray + alpha, RGB or RGBA rows (palettes and low bit depths expanded).
+    dec.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
+    let mut reader = dec.read_info().map_err(png_reason)?;
+    let info = reader.info();
+    if info.interlaced {
+        return Ok(None);
+    }
+    let (w, h) = (info.width, info.height);
+    let orientation = info
+        .exif_metadata
+        .as_deref()
+        .and_then(image::metadata::Orientation::from_exif_chunk)
+        .unwrap_or(image::metadata::Orientation::NoTransforms);
+    let (nw, nh) = target_size(w, h, orientation, opts)?;
+    let channels = match reader.output_color_type().0 {
+        png::ColorType::Grayscale => 1,
+        png::ColorType::GrayscaleAlpha => 2,
+        png::ColorType::Rgb => 3,
+        png::ColorType::Rgba => 4,
+        png::ColorType::Indexed => return Ok(None),
+    };
+    let mut sink = RowSink::new(w, h, nw, nh);
+    let mut line = vec![0u8; w as usize * 3];
+    for _ in 0..h {
+        let row = reader
+            .next_row()
+            .map_err(png_reason)?
+            .ok_or("the PNG data is truncated")?;
+        let data = row.data();
+        if data.len() < w as usize * channels {
+            return Err("corrupt PNG data (a short row)".into());
+        }
+        for (px, out) in data.chunks_exact(channels).zip(line.chunks_exact_mut(3)) {
+            let (rgb, a) = match channels {
+                1 => ([px[0]; 3], 255),
+                2 => ([px[0]; 3], px[1]),
+                3 => ([px[0], px[1], px[2]], 255),
+                _ => ([px[0], px[1], px[2]], px[3]),
+            };
+            for c in 0..3 {
+                out[c] = on_black(rgb[c], a);
+            }
+        }
+        sink.push(&line);
+    }
+    // Every row can be out before the data stream ends (its checksum, the chunk's CRC, IEND):
+    // reading to the end refuses a file cut there, as the whole-image decoders do.
+    reader.finish().map_err(png_reason)?;
+    Ok(Some(Decoded {
+        rgb: sink.finish()?,
+        width: w,
+        height: h,
+        orientation,
+    }))
+}
+
+/// Refuses a sequential (baseline or extended Huffman) JPEG whose image data is too short for
+/// the size its header states: every 8x8 block of every component takes at least two Huffman
+/// codes (its DC difference and an end-of-block), each at least one bit. The decoders fill the
+/// blocks a truncated file lacks, so without this a 700-byte file saying 6693x6169 cost as
+/// much time as a real 41-megapixel photo (seconds; found by fuzzing). Progressive files (whose
+/// end-of-band runs legitimately cover many blocks with one code) and headers this cannot
+/// read are left to the decoder.
+fn check_jpeg_data_length(bytes: &[u8]) -> Result<(), String> {
+    // The largest minimum over the sequential frame headers before the first scan, with its
+    // size: a file with several frame headers (malformed, but decoders read some of them) is
+    // held to the most demanding one, so a decoy header cannot hide a huge one.
+    let mut floor: Option<(u64, u64, u64)> = None;
+    let mut i = 2;
+    while i + 4 <= bytes.len() {
+        if bytes[i] != 0xff {
+            // The decoders skip garbage between segments, looking for the next marker.
+            i += 1;
+            continue;
+        }
+        let marker = bytes[i + 1];
+        if marker == 0xff {
+            // Fill byte before a marker.
+            i += 1;
+            continue;
+        }
+        if marker == 0x01 || (0xd0..=0xd7).contains(&marker) {
+            i += 2;
+            continue;
+        }
+        let len = u16::from_be_bytes([bytes[i + 2], bytes[i + 3]]) as usize;
+        let Some(segment) = bytes.get(i + 4..i + 2 + len).filter(|_| len >= 2) else {
+            return Ok(());
+        };
+        match marker {
+            // Baseline and extended sequential, Huffman coded.
+            0xc0 | 0xc1 if segment.len() >= 6 => {
+                let h = u64::from(u16::from_be_bytes([segment[1], segment[2]]));
+                let w = u64::from(u16::from_be_bytes([segment[3], segment[4]]));
+                let comps: Vec<(u64, u64)> = segment[6..]
+                    .chunks_exact(3)
+                    .take(usize::from(segment[5]))
+                    .map(|c| (u64::from(c[1] >> 4), u64::from(c[1] & 15)))
+                    .collect();
+                let hmax = comps.iter().map(|c| c.0).max().unwrap_or(0);
+                let vmax = comps.iter().map(|c| c.1).max().unwrap_or(0);
+                if w > 0 && h > 0 && hmax > 0 && vmax > 0 {
+                    let blocks: u64 = comps
+                        .iter()
+                        .map(|&(ch, cv)| {
+                            let cw = (w * ch).div_ceil(hmax);
+                            let cht = (h * cv).div_ceil(vmax);
+                            cw.div_ceil(8) * cht.div_ceil(8)
+                        })
+                        .sum();
+                    let needed = (blocks * 2).div_ceil(8);
+                    if floor.is_none_or(|f| needed > f.2) {
+                        floor = Some((w, h, needed));
+                    }
+                }
+            }
+            // Start of scan: the entropy-coded data follows.
+            0xda => {
+                let have = (bytes.len() - (i + 2 + len)) as u64;
+                return match floor {
+                    Some((w, h, needed)) if have < needed => Err(format!(
+                        "the JPEG data is truncated: a {w}x{h} image needs at least {needed} bytes \
+                         of image data, the file has {have}"
+                    )),
+                    _ => Ok(()),
+                };
+            }
+            _ => {}
+        }
+        i += 2 + len;
+    }
+    Ok(())
+}
+
+/// A colour channel with alpha, composited onto black (rounded).
+fn on_black(c: u8, a: u8) -> u8 {
+    ((c as u32 * a as u32 + 127) / 255) as u8
+}
+
+/// A baseline 8-bit gray or RGB JPEG larger than `fit_within`, decoded at the smallest IDCT
+/// scale (1/8 .. 1) still at least the output size, then area-averaged to it. `None` when the
+/// JPEG needs no downscaling or is of a kind this path does not take (the whole decode then
+/// handles it).
+fn decode_jpeg_scaled(bytes: &[u8], opts: &DecodeOptions) -> Result<Option<Decoded>, String> {
+    let Some(limit) = opts.fit_within else {
+        return Ok(None);
+    };
+    let mut dec = jpeg_decoder::Decoder::new(Cursor::new(bytes));
+    if dec.read_info().is_err() {
+        // Let the whole decode give its own message.
+        return Ok(None);
+    }
+    let Some(info) = dec.info() else {
+        return Ok(None);
+    };
+    let (w, h) = (u32::from(info.width), u32::from(info.height));
+    if w.max(h) <= limit.max(1)
+        || !matches!(
+            info.pixel_format,
+            jpeg_decoder::PixelFormat::L8 | jpeg_decoder::PixelFormat::RGB24
+        )
+    {
+        return Ok(None);
+    }
+    let orientation = dec
+        .exif_data()
+        .and_then(image::metadata::Orientation::from_exif_chunk)
+        .unwrap_or(image::metadata::Orientation::NoTransforms);
+    let (nw, nh) = target_size(w, h, orientation, opts)?;
+    if info.coding_process == jpeg_decoder::CodingProcess::DctProgressive {
+        // Progressive scans keep every coefficient of the full-size image (2 bytes a sample).
+        let channels: u64 = if info.pixel_format == jpeg_decoder::PixelFormat::L8 {
+            1
+        } else {
+            3
+        };
+        if w as u64 * h as u64 * channels * 2 > MAX_WHOLE_DECODE_BYTES {
+            return Err(format!(
+                "the progressive JPEG is {w}x{h} pixels, too large to decode here (at most \
+                 {} MiB of coefficients); save it as a baseline JPEG or PNG, or downscale it",
+                MAX_WHOLE_DECODE_BYTES >> 20
+            ));
+        }
+    }
+    let (sw, sh) = match dec.scale(
+        nw.min(u16::MAX as u32) as u16,
+        nh.min(u16::MAX as u32) as u16,
+    ) {
+        Ok((sw, sh)) => (u32::from(sw), u32::from(sh)),
+        Err(_) => return Ok(None),
+    };
+    dec.set_max_decoding_buffer_size(MAX_ALLOC as usize);
+    let pixels = match dec.decode() {
+        Ok(p) => p,
+        Err(jpeg_decoder::Error::Io(io)) if io.kind() == std::io::ErrorKind::UnexpectedEof => {
+            return Err("the JPEG data is truncated".into())
+        }
+        Err(jpeg_decoder::Error::Format(m)) => return Err(format!("corrupt JPEG data ({m})")),
+        // Unsupported features: the whole decode may still read it.
+        Err(_) => return Ok(None),
+    };
+    let rgb: Vec<u8> = if info.pixel_format == jpeg_decoder::PixelFormat::L8 {
+        pixels.iter().flat_map(|&g| [g, g, g]).collect()
+    } else {
+        pixels
+    };
+    let scaled = RgbImage::from_raw(sw, sh, rgb).ok_or("corrupt JPEG data (short output)")?;
+    let rgb = if (sw, sh) == (nw, nh) {
+        scaled
+    } else {
+        area_downscale(&scaled, nw, nh)
+    };
+    Ok(Some(Decoded {
+        rgb,
+        width: w,
+        height: h,
+        orientation,
+    }))
+}
+
+/// The whole image through the `image` crate, refusing decoded buffers above
+/// [`MAX_WHOLE_DECODE_BYTES`], then downscaled when it exceeds `fit_within`.
+fn decode_whole(bytes: &[u8], kind: ImageKind, opts: &DecodeOptions) -> Result<Decoded, String> {
     let mut reader = ImageReader::with_format(Cursor::new(bytes), kind.format());
     let mut limits = Limits::default();
     limits.max_image_width = Some(MAX_SIDE);
     limits.max_image_height = Some(MAX_SIDE);
     limits.max_alloc = Some(MAX_ALLOC);
     reader.limits(limits);
-    let mut decoder = reader
-        .into_decoder()
-        .map_err(|e| err(decode_reason(kind, e)))?;
+    let mut decoder = reader.into_decoder().map_err(|e| decode_reason(kind, e))?;
     let (w, h) = decoder.dimensions();
-    check_size(w, h).map_err(err)?;
     // A missing or unreadable orientation tag means "as stored", like every viewer does.
     let orientation = decoder
         .orientation()
         .unwrap_or(image::metadata::Orientation::NoTransforms);
-    let img = DynamicImage::from_decoder(decoder).map_err(|e| err(decode_reason(kind, e)))?;
-    let rgb = to_rgb_on_black(img);
-    let (ow, oh) = if swaps_sides(orientation) {
-        (h, w)
-    } else {
-        (w, h)
-    };
-    if ow.min(oh) < opts.min_side {
-        return Err(err(format!(
-            "the image is {ow}x{oh} pixels; at least {m}x{m} is needed",
-            m = opts.min_side
-        )));
+    let (nw, nh) = target_size(w, h, orientation, opts)?;
+    let decoded_bytes = decoder.total_bytes();
+    if decoded_bytes > MAX_WHOLE_DECODE_BYTES {
+        return Err(format!(
+            "the {} image is {w}x{h} pixels, too large to decode in one piece here (at most {} \
+             MiB decoded); save it as a baseline JPEG or a non-interlaced PNG, which are read at \
+             reduced size, or downscale it",
+            kind.name(),
+            MAX_WHOLE_DECODE_BYTES >> 20
+        ));
     }
-    let (rgb, scale) = match opts.fit_within {
-        Some(limit) if w.max(h) > limit.max(1) => {
-            let s = limit.max(1) as f64 / w.max(h) as f64;
-            let nw = ((w as f64 * s).round() as u32).max(1);
-            let nh = ((h as f64 * s).round() as u32).max(1);
-            let small = area_downscale(&rgb, nw, nh);
-            drop(rgb);
-            (small, w as f64 / nw as f64)
-        }
-        _ => (rgb, 1.0),
+    let img = DynamicImage::from_decoder(decoder).map_err(|e| decode_reason(kind, e))?;
+    let rgb = to_rgb_on_black(img);
+    let rgb = if (nw, nh) == (w, h) {
+        rgb
+    } else {
+        area_downscale(&rgb, nw, nh)
     };
-    let mut dynimg = DynamicImage::ImageRgb8(rgb);
-    dynimg.apply_orientation(orientation);
-    let DynamicImage::ImageRgb8(rgb) = dynimg else {
-        unreachable!("apply_orientation keeps the pixel type")
-    };
-    Ok(DecodedImage {
+    Ok(Decoded {
         rgb,
-        original_width: ow,
-        original_height: oh,
-        scale_to_original: scale,
-        kind,
+        width: w,
+        height: h,
         orientation,
     })
 }
@@ -189,8 +555,8 @@ fn check_size(w: u32, h: u32) -> Result<(), String> {
     }
     if w > MAX_SIDE || h > MAX_SIDE || w as u64 * h as u64 > MAX_PIXELS {
         return Err(format!(
-            "the image is {w}x{h} pixels, larger than the {MAX_SIDE} px per side / {} MP this tool \
-             accepts; downscale it first",
+            "the image is {w}x{h} pixels, too large: this tool accepts at most {MAX_SIDE} px per \
+             side and {} MP; downscale it first",
             MAX_PIXELS / 1_000_000
         ));
     }
@@ -239,9 +605,8 @@ fn to_rgb_on_black(img: DynamicImage) -> RgbImage {
             let (w, h) = rgba.dimensions();
             let mut out = RgbImage::new(w, h);
             for (o, p) in out.pixels_mut().zip(rgba.pixels()) {
-                let a = p.0[3] as u32;
                 for c in 0..3 {
-                    o.0[c] = ((p.0[c] as u32 * a + 127) / 255) as u8;
+                    o.0[c] = on_black(p.0[c], p.0[3]);
                 }
             }
             out
@@ -251,44 +616,96 @@ fn to_rgb_on_black(img: DynamicImage) -> RgbImage {
 }
 
 /// Exact area-average downscale (each output pixel is the mean of the source area it covers,
-/// fractional pixels weighted by their coverage), streamed one source row at a time so only
-/// one output-sized accumulator exists beside the source.
+/// fractional pixels weighted by their coverage), see [`AreaDownscaler`].
 pub fn area_downscale(src: &RgbImage, nw: u32, nh: u32) -> RgbImage {
     let (w, h) = src.dimensions();
-    let (w, h, nw, nh) = (
-        w as usize,
-        h as usize,
-        nw.max(1) as usize,
-        nh.max(1) as usize,
-    );
-    let hx = coverage(w, nw);
-    let hy = coverage(h, nh);
-    let mut acc = vec![0f32; nw * nh * 3];
-    let mut row = vec![0f32; nw * 3];
-    let raw = src.as_raw();
-    for (y, ys) in hy.iter().enumerate() {
-        row.iter_mut().for_each(|v| *v = 0.0);
-        let line = &raw[y * w * 3..(y + 1) * w * 3];
-        for (x, xs) in hx.iter().enumerate() {
-            let px = &line[x * 3..x * 3 + 3];
+    let mut d = AreaDownscaler::new(w, h, nw, nh);
+    for line in src.as_raw().chunks_exact((w as usize * 3).max(1)) {
+        d.push_row(line);
+    }
+    d.finish()
+}
+
+/// The area-average downscale fed one source row at a time (RGB u8), so the source never has to
+/// exist as a whole. A source row touches at most two output rows and rows arrive in order, so
+/// only two output rows are accumulated (in f32) at a time; finished rows are rounded into the
+/// output as they complete.
+pub struct AreaDownscaler {
+    hx: Vec<[Option<(usize, f32)>; 2]>,
+    hy: Vec<[Option<(usize, f32)>; 2]>,
+    nw: usize,
+    nh: usize,
+    /// Output rows `base` and `base + 1`.
+    acc: Vec<f32>,
+    base: usize,
+    row: Vec<f32>,
+    out: Vec<u8>,
+    y: usize,
+}
+
+impl AreaDownscaler {
+    /// From `w` x `h` to `nw` x `nh` (each at least 1 and at most the source's).
+    pub fn new(w: u32, h: u32, nw: u32, nh: u32) -> Self {
+        let (w, h) = (w.max(1) as usize, h.max(1) as usize);
+        let (nw, nh) = ((nw.max(1) as usize).min(w), (nh.max(1) as usize).min(h));
+        AreaDownscaler {
+            hx: coverage(w, nw),
+            hy: coverage(h, nh),
+            nw,
+            nh,
+            acc: vec![0f32; 2 * nw * 3],
+            base: 0,
+            row: vec![0f32; nw * 3],
+            out: Vec::with_capacity(nw * nh * 3),
+            y: 0,
+        }
+    }
+
+    /// Rounds output row `base` into the output and moves the window down one row.
+    fn flush_row(&mut self) {
+        let n = self.nw * 3;
+        self.out.extend(
+            self.acc[..n]
+                .iter()
+                .map(|v| v.round().clamp(0.0, 255.0) as u8),
+        );
+        self.acc.copy_within(n.., 0);
+        self.acc[n..].iter_mut().for_each(|v| *v = 0.0);
+        self.base += 1;
+    }
+
+    /// Adds the next source row (`w * 3` bytes); rows beyond `h` are ignored.
+    pub fn push_row(&mut self, line: &[u8]) {
+        let Some(ys) = self.hy.get(self.y).copied() else {
+            return;
+        };
+        self.y += 1;
+        self.row.iter_mut().for_each(|v| *v = 0.0);
+        for (xs, px) in self.hx.iter().zip(line.chunks_exact(3)) {
             for &(ox, wx) in xs.iter().flatten() {
-                for c in 0..3 {
-                    row[ox * 3 + c] += wx * px[c] as f32;
+                for (acc, &v) in self.row[ox * 3..ox * 3 + 3].iter_mut().zip(px) {
+                    *acc += wx * v as f32;
                 }
             }
         }
+        let n = self.nw * 3;
         for &(oy, wy) in ys.iter().flatten() {
-            let dst = &mut acc[oy * nw * 3..(oy + 1) * nw * 3];
-            for (d, r) in dst.iter_mut().zip(&row) {
+            while oy >= self.base + 2 {
+                self.flush_row();
+            }
+            let at = (oy - self.base) * n;
+            for (d, r) in self.acc[at..at + n].iter_mut().zip(&self.row) {
                 *d += wy * r;
             }
         }
     }
-    let data = acc
-        .into_iter()
-        .map(|v| v.round().clamp(0.0, 255.0) as u8)
-        .collect();
-    RgbImage::from_raw(nw as u32, nh as u32, data).expect("buffer sized nw*nh*3")
+
+    pub fn finish(mut self) -> RgbImage {
+        while self.base < self.nh {
+            self.flush_row();
+        }
+        RgbImage::from_raw(self.nw as u32, self.nh as u32, self.out).expect("buffer sized nw*nh*3")
+    }
 }
 
 /// For each of `n` source pixels, the (at most two) output pixels of `m` it overlaps and the
@@ -367,6 +784,77 @@ mod tests {
         assert!(e.contains("1x1") && e.contains("16x16"), "{e}");
     }
 
+    fn jpeg_bytes(img: &RgbImage) -> Vec<u8> {
+        let mut out = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 90)
+            .encode_image(img)
+            .unwrap();
+        out
+    }
+
+    /// A baseline JPEG whose header states a size its data cannot hold is refused before
+    /// decoding (the decoders would fill the missing blocks, as slow as a real photo that size).
+    #[test]
+    fn a_jpeg_too_short_for_its_size_is_truncated() {
+        let small = jpeg_bytes(&gradient(64, 48));
+        let sof = small
+            .windows(2)
+            .position(|w| w == [0xff, 0xc0])
+            .expect("a baseline SOF0");
+        let mut big = small.clone();
+        big[sof + 5..sof + 7].copy_from_slice(&6169u16.to_be_bytes());
+        big[sof + 7..sof + 9].copy_from_slice(&6693u16.to_be_bytes());
+        for fit in [None, Some(2048)] {
+            let opts = DecodeOptions {
+                min_side: 1,
+                fit_within: fit,
+            };
+            assert!(decode_image(&small, "s.jpg", &opts).is_ok());
+            let e = decode_image(&big, "big.jpg", &opts)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.starts_with("big.jpg: the JPEG data is truncated: a 6693x6169 image needs"),
+                "{e}"
+            );
+        }
+        // The case AFL++ saved as a hang (688 bytes stating 6693x6169; 5 s to decode before).
+        let hang = std::fs::read(
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("tests/data/fuzz/afl_hang_tiny_jpeg_6693x6169.jpg"),
+        )
+        .unwrap();
+        let opts = DecodeOptions {
+            min_side: 1,
+            fit_within: Some(2048),
+        };
+        let e = decode_image(&hang, "hang.jpg", &opts)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("truncated") && e.contains("needs at least"),
+            "{e}"
+        );
+        // The second: a decoy arithmetic-coded frame header before a 784x6080 baseline one (742
+        // bytes, 0.2 s, saved as a hang on a loaded machine).
+        let decoy = std::fs::read(
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("tests/data/fuzz/afl_slow_jpeg_decoy_sof.jpg"),
+        )
+        .unwrap();
+        let e = decode_image(&decoy, "decoy.jpg", &opts)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("784x6080") && e.contains("needs at least"),
+            "{e}"
+        );
+        // A flat image, the most compressible real data, is not mistaken for a short one.
+        let flat = jpeg_bytes(&RgbImage::from_pixel(2048, 1536, image::Rgb([90, 90, 90])));
+        let d = decode_image(&flat, "flat.jpg", &DecodeOptions::default()).unwrap();
+        assert_eq!(d.rgb.dimensions(), (2048, 1536));
+    }
+
     /// PNG's chunk checksum (so a hand-edited header still parses).
     fn crc32(bytes: &[u8]) -> u32 {
         let mut c = !0u32;
@@ -394,7 +882,23 @@ mod tests {
         let e = decode_image(&png, "big.png", &DecodeOptions::default())
             .unwrap_err()
             .to_string();
-        assert!(e.contains("too large"), "{e}");
+        assert!(e.contains("60000x60000") && e.contains("too large"), "{e}");
+        // A BMP header claiming 16000x9000 (432 MB of RGB), which is not decoded row by row.
+        let mut bmp = b"BM".to_vec();
+        bmp.extend(70u32.to_le_bytes()); // file size (unchecked)
+        bmp.extend([0; 4]);
+        bmp.extend(54u32.to_le_bytes()); // pixel data offset
+        bmp.extend(40u32.to_le_bytes()); // BITMAPINFOHEADER
+        bmp.extend(16000i32.to_le_bytes());
+        bmp.extend(9000i32.to_le_bytes());
+        bmp.extend(1u16.to_le_bytes());
+        bmp.extend(24u16.to_le_bytes());
+        bmp.extend([0; 24]);
+        bmp.extend([0; 16]);
+        let e = decode_image(&bmp, "big.bmp", &DecodeOptions::default())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("too large to decode in one piece"), "{e}");
     }
 
     #[test]

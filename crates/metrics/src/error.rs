@@ -5,7 +5,7 @@ use std::path::PathBuf;
 /// errors, never panics.
 #[derive(Debug, thiserror::Error)]
 pub enum MetricsError {
-    #[error("{0}")]
+    #[error(transparent)]
     Candle(#[from] candle_core::Error),
     /// A model file missing, unreadable, or not holding exactly the expected tensors.
     #[error("model weights {}: {reason}", .path.display())]

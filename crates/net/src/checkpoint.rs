@@ -15,6 +15,10 @@ use candle_nn::var_builder::SimpleBackend;
 use candle_nn::VarBuilder;
 use rayon::prelude::*;
 
+use gagavatar_formats::pickle::{DictKey, PyValue};
+use gagavatar_formats::safetensors::TensorOut;
+use gagavatar_formats::tensor::{RawData, RawTensor};
+
 use crate::config::ModelConfig;
 use crate::error::{NetError, Result};
 
@@ -23,6 +27,9 @@ use crate::error::{NetError, Result};
 pub const IGNORED_PREFIXES: [&str; 1] = ["percep_loss."];
 /// Safetensors metadata key holding the model configuration as JSON.
 pub const CONFIG_METADATA_KEY: &str = "gagavatar.config";
+/// Safetensors metadata key holding the fingerprint (16 hex digits) of the FLAME asset the
+/// weights were trained with (`FlameAsset::fingerprint`).
+pub const FLAME_METADATA_KEY: &str = "gagavatar.flame";
 /// The release pickle nests the state dict under this key.
 const RELEASE_STATE_DICT: &str = "model.";
 
@@ -153,12 +160,14 @@ pub struct Weights {
     pub tensors: HashMap<String, Tensor>,
     /// From the safetensors metadata (`gagavatar.config`); `None` for the release `.pt`.
     pub config: Option<ModelConfig>,
+    /// Every safetensors metadata entry (empty for the release `.pt`).
+    pub metadata: BTreeMap<String, String>,
 }
 
-fn io_err(path: &Path, source: std::io::Error) -> NetError {
+fn io_err(path: &Path, err: std::io::Error) -> NetError {
     NetError::Io {
         path: path.to_owned(),
-        source,
+        err,
     }
 }
 
@@ -184,7 +193,7 @@ pub fn read_weights(path: &Path) -> Result<Weights> {
 }
 
 fn read_torch(path: &Path) -> Result<Weights> {
-    let map = gagavatar_flame::read_torch_zip(path)?;
+    let map = gagavatar_formats::torch_zip::read_torch_zip(path)?;
     let nested = map.keys().any(|k| k.starts_with(RELEASE_STATE_DICT));
     let mut tensors = HashMap::new();
     for (key, raw) in map {
@@ -197,69 +206,57 @@ fn read_torch(path: &Path) -> Result<Weights> {
         } else {
             key
         };
-        let data = match raw.data {
-            gagavatar_flame::asset::RawData::Float(v) => v,
-            gagavatar_flame::asset::RawData::Int(_) => {
-                return Err(format_err(
-                    path,
-                    format!("`{key}` is an integer tensor; the model only has float weights"),
-                ))
-            }
-        };
-        let t = Tensor::from_vec(data, raw.shape, &Device::Cpu)?;
+        let t = float_tensor(path, &key, raw)?;
         tensors.insert(key, t);
     }
     Ok(Weights {
         tensors,
         config: None,
+        metadata: BTreeMap::new(),
     })
+}
+
+fn float_tensor(path: &Path, key: &str, raw: RawTensor) -> Result<Tensor> {
+    match raw.data {
+        RawData::Float(v) => Ok(Tensor::from_vec(v, raw.shape, &Device::Cpu)?),
+        RawData::Int(_) => Err(format_err(
+            path,
+            format!(
+                "`{key}` is an integer tensor ({}); the model's weights are floating point",
+                raw.file_dtype
+            ),
+        )),
+    }
 }
 
 fn read_safetensors_file(path: &Path) -> Result<Weights> {
     let bytes = std::fs::read(path).map_err(|e| io_err(path, e))?;
-    let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes)
+    let label = path.display().to_string();
+    let header = gagavatar_formats::safetensors::read_header(&bytes, &label)
         .map_err(|e| format_err(path, format!("neither a torch zip nor safetensors: {e}")))?;
-    let config = match meta
-        .metadata()
-        .as_ref()
-        .and_then(|m| m.get(CONFIG_METADATA_KEY))
-    {
+    let config = match header.metadata.get(CONFIG_METADATA_KEY) {
         Some(json) => Some(
             serde_json::from_str::<ModelConfig>(json)
                 .map_err(|e| format_err(path, format!("bad `{CONFIG_METADATA_KEY}`: {e}")))?,
         ),
         None => None,
     };
-    let st = safetensors::SafeTensors::deserialize(&bytes).map_err(|e| format_err(path, e))?;
+    let file = gagavatar_formats::safetensors::parse_safetensors(&bytes, &label)?;
+    drop(bytes);
     let mut tensors = HashMap::new();
-    for (name, view) in st.tensors() {
-        let t = match view.dtype() {
-            safetensors::Dtype::F32 => {
-                Tensor::from_raw_buffer(view.data(), DType::F32, view.shape(), &Device::Cpu)?
-            }
-            safetensors::Dtype::F64 | safetensors::Dtype::F16 | safetensors::Dtype::BF16 => {
-                let dt = match view.dtype() {
-                    safetensors::Dtype::F64 => DType::F64,
-                    safetensors::Dtype::F16 => DType::F16,
-                    _ => DType::BF16,
-                };
-                Tensor::from_raw_buffer(view.data(), dt, view.shape(), &Device::Cpu)?
-                    .to_dtype(DType::F32)?
-            }
-            other => {
-                return Err(format_err(
-                    path,
-                    format!("`{name}` has dtype {other:?}; weights must be floating point"),
-                ))
-            }
-        };
+    for (name, raw) in file.tensors {
+        let t = float_tensor(path, &name, raw)?;
         let name = name
             .strip_prefix(RELEASE_STATE_DICT)
             .unwrap_or(&name)
             .to_string();
         tensors.insert(name, t);
     }
-    Ok(Weights { tensors, config })
+    Ok(Weights {
+        tensors,
+        config,
+        metadata: header.metadata,
+    })
 }
 
 pub(crate) fn ignored(key: &str) -> bool {
@@ -382,25 +379,16 @@ pub fn init_weights(cfg: &ModelConfig, seed: u64) -> Result<WeightData> {
         .collect())
 }
 
-/// A float32 tensor view for the safetensors writer.
-struct F32View<'a> {
-    shape: &'a [usize],
-    data: Cow<'a, [f32]>,
-}
-
-impl safetensors::View for &F32View<'_> {
-    fn dtype(&self) -> safetensors::Dtype {
-        safetensors::Dtype::F32
+/// The safetensors metadata written with weights: `format: pt` (what other tools expect) and
+/// the configuration, when given.
+fn weights_metadata(config: Option<&ModelConfig>) -> Result<BTreeMap<String, String>> {
+    let mut meta = BTreeMap::new();
+    meta.insert("format".to_string(), "pt".to_string());
+    if let Some(cfg) = config {
+        let json = serde_json::to_string(cfg).map_err(|e| NetError::Config(e.to_string()))?;
+        meta.insert(CONFIG_METADATA_KEY.to_string(), json);
     }
-    fn shape(&self) -> &[usize] {
-        self.shape
-    }
-    fn data(&self) -> Cow<'_, [u8]> {
-        Cow::Owned(self.data.iter().flat_map(|x| x.to_le_bytes()).collect())
-    }
-    fn data_len(&self) -> usize {
-        self.data.len() * 4
-    }
+    Ok(meta)
 }
 
 /// Writes f32 tensors as safetensors atomically (temp file + rename), with `config` in the
@@ -410,25 +398,14 @@ pub fn write_safetensors<'a>(
     tensors: impl IntoIterator<Item = (String, &'a [usize], Cow<'a, [f32]>)>,
     config: Option<&ModelConfig>,
 ) -> Result<()> {
-    let views: Vec<(String, F32View)> = tensors
+    let out: Vec<TensorOut> = tensors
         .into_iter()
-        .map(|(k, shape, data)| (k, F32View { shape, data }))
+        .map(|(k, shape, data)| TensorOut::f32(k, shape.to_vec(), data))
         .collect();
-    let mut meta = HashMap::new();
-    meta.insert("format".to_string(), "pt".to_string());
-    if let Some(cfg) = config {
-        let json = serde_json::to_string(cfg).map_err(|e| NetError::Config(e.to_string()))?;
-        meta.insert(CONFIG_METADATA_KEY.to_string(), json);
-    }
-    let refs: Vec<(&str, &F32View)> = views.iter().map(|(k, v)| (k.as_str(), v)).collect();
-    gagavatar_splat::scene::write_via_temp(
-        path,
-        |tmp| {
-            safetensors::tensor::serialize_to_file(refs, Some(meta), tmp)
-                .map_err(|e| format_err(path, e))
-        },
-        |e| io_err(path, e),
-    )
+    let meta = weights_metadata(config)?;
+    Ok(gagavatar_formats::safetensors::write_safetensors(
+        path, &out, &meta,
+    )?)
 }
 
 /// Writes candle tensors (converted to f32) as safetensors atomically.
@@ -437,18 +414,86 @@ pub fn write_tensors(
     tensors: &BTreeMap<String, Tensor>,
     config: Option<&ModelConfig>,
 ) -> Result<()> {
+    write_tensors_with_metadata(path, tensors, config, &BTreeMap::new())
+}
+
+/// [`write_tensors`] with further metadata entries (e.g. [`FLAME_METADATA_KEY`]).
+pub fn write_tensors_with_metadata(
+    path: &Path,
+    tensors: &BTreeMap<String, Tensor>,
+    config: Option<&ModelConfig>,
+    extra: &BTreeMap<String, String>,
+) -> Result<()> {
     let mut owned = Vec::with_capacity(tensors.len());
     for (k, t) in tensors {
         let v: Vec<f32> = t.to_dtype(DType::F32)?.flatten_all()?.to_vec1()?;
         owned.push((k.clone(), t.dims().to_vec(), v));
     }
-    write_safetensors(
+    let out: Vec<TensorOut> = owned
+        .iter()
+        .map(|(k, s, v)| TensorOut::f32(k.clone(), s.clone(), v.as_slice()))
+        .collect();
+    let mut meta = weights_metadata(config)?;
+    meta.extend(extra.iter().map(|(k, v)| (k.clone(), v.clone())));
+    Ok(gagavatar_formats::safetensors::write_safetensors(
+        path, &out, &meta,
+    )?)
+}
+
+/// Writes `tensors` (converted to f32, row-major, one at a time) as a torch zip checkpoint
+/// `{"model": state_dict, "meta_cfg": config}` that the release's Python code loads with
+/// `torch.load`, atomically. `meta_cfg` is the configuration as a plain dict, or None.
+pub fn write_torch_checkpoint(
+    path: &Path,
+    tensors: &BTreeMap<String, Tensor>,
+    config: Option<&ModelConfig>,
+) -> Result<()> {
+    let cfg = config
+        .map(serde_json::to_value)
+        .transpose()
+        .map_err(|e| NetError::Config(e.to_string()))?
+        .map(|v| json_to_plain(&v));
+    let shapes: Vec<(String, Vec<usize>)> = tensors
+        .iter()
+        .map(|(k, t)| (k.clone(), t.dims().to_vec()))
+        .collect();
+    let entries: Vec<(&str, &[usize])> = shapes
+        .iter()
+        .map(|(k, s)| (k.as_str(), s.as_slice()))
+        .collect();
+    let values: Vec<&Tensor> = tensors.values().collect();
+    Ok(gagavatar_formats::torch_zip::write_torch_zip(
         path,
-        owned
-            .iter()
-            .map(|(k, s, v)| (k.clone(), s.as_slice(), Cow::Borrowed(v.as_slice()))),
-        config,
-    )
+        &entries,
+        cfg.as_ref(),
+        |i| {
+            values[i]
+                .to_dtype(DType::F32)
+                .and_then(|t| t.flatten_all())
+                .and_then(|t| t.to_vec1::<f32>())
+                .map_err(|e| e.to_string())
+        },
+    )?)
+}
+
+/// JSON (the configuration) as plain Python data.
+fn json_to_plain(v: &serde_json::Value) -> PyValue {
+    use serde_json::Value;
+    match v {
+        Value::Null => PyValue::None,
+        Value::Bool(b) => PyValue::Bool(*b),
+        Value::Number(n) => match n.as_i64() {
+            Some(i) => PyValue::Int(i),
+            None => PyValue::Float(n.as_f64().unwrap_or(f64::NAN)),
+        },
+        Value::String(s) => PyValue::Str(s.clone()),
+        Value::Array(items) => PyValue::List(items.iter().map(json_to_plain).collect()),
+        Value::Object(map) => PyValue::Dict(
+            map.iter()
+                .map(|(k, v)| (DictKey::Str(k.clone()), json_to_plain(v)))
+                .collect(),
+        ),
+    }
 }
 
 /// Which configuration a weights file is for: an explicit choice wins, then the file's

@@ -73,6 +73,11 @@ pub const DIR_ENCODING_DIM: usize = 27;
 /// NDC focal length of every camera in the release.
 pub const FOCAL: f64 = 12.0;
 
+/// Checkpoint-key prefix of the DINOv2 backbone.
+pub const BACKBONE_PREFIX: &str = "base_model.dino_model.";
+/// Checkpoint-key prefix of the renderer's fixed noise buffers.
+pub const NOISE_BUFFER_PREFIX: &str = "upsampler.stylegan_decoder.noises.";
+
 impl ModelConfig {
     /// The published model; loads `GAGAvatar.pt`.
     pub fn release() -> Self {

@@ -3,13 +3,12 @@ use std::path::PathBuf;
 /// Everything the network crate can fail with.
 #[derive(Debug, thiserror::Error)]
 pub enum NetError {
-    #[error("{0}")]
+    #[error(transparent)]
     Candle(#[from] candle_core::Error),
-    #[error("{path}: {source}")]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    /// The cause is part of the message and deliberately not a `source()`, which the CLI
+    /// would print a second time.
+    #[error("{}: {err}", path.display())]
+    Io { path: PathBuf, err: std::io::Error },
     #[error("{path}: {reason}")]
     Format { path: PathBuf, reason: String },
     /// The weights do not fit the configuration: every missing, unexpected and misshapen key.
@@ -21,8 +20,9 @@ pub enum NetError {
     Input { name: String, reason: String },
     #[error(transparent)]
     Splat(#[from] gagavatar_splat::SplatError),
+    /// A weights file that cannot be read as a torch zip or safetensors file.
     #[error(transparent)]
-    Flame(#[from] gagavatar_flame::FlameError),
+    File(#[from] gagavatar_formats::FormatError),
 }
 
 pub type Result<T> = std::result::Result<T, NetError>;

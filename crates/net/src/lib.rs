@@ -14,5 +14,4 @@ pub mod gs_generator;
 pub mod model;
 pub mod plane;
 pub mod style_unet;
-pub mod torch_writer;
 pub mod train;

@@ -371,7 +371,7 @@ impl GagAvatar {
         let mut out = Vec::new();
         if !self.dino.is_trainable() {
             for (k, t) in self.dino.named_weights()? {
-                out.push((format!("{}{k}", crate::train::BACKBONE_PREFIX), t));
+                out.push((format!("{}{k}", crate::config::BACKBONE_PREFIX), t));
             }
         }
         for (i, t) in self.renderer.decoder().noise_buffers().iter().enumerate() {

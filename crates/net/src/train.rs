@@ -22,10 +22,7 @@ use crate::config::ModelConfig;
 use crate::error::{NetError, Result};
 use crate::model::GagAvatar;
 
-/// Checkpoint-key prefix of the DINOv2 backbone.
-pub const BACKBONE_PREFIX: &str = "base_model.dino_model.";
-/// Checkpoint-key prefix of the renderer's fixed noise buffers.
-pub const NOISE_BUFFER_PREFIX: &str = "upsampler.stylegan_decoder.noises.";
+pub use crate::config::{BACKBONE_PREFIX, NOISE_BUFFER_PREFIX};
 
 /// Whether the checkpoint key `key` is a trained parameter of the model with `cfg`.
 pub fn is_trainable_key(cfg: &ModelConfig, key: &str) -> bool {

@@ -36,12 +36,10 @@ pub enum SplatError {
     Scene { path: String, msg: String },
     #[error(transparent)]
     Candle(#[from] candle_core::Error),
-    #[error("i/o error on {path}")]
-    Io {
-        path: String,
-        #[source]
-        source: std::io::Error,
-    },
+    /// The cause is part of the message and deliberately not a `source()`, which the CLI
+    /// would print a second time.
+    #[error("{path}: {err}")]
+    Io { path: String, err: std::io::Error },
 }
 
 pub type Result<T> = std::result::Result<T, SplatError>;

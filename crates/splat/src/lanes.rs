@@ -11,6 +11,11 @@
 
 use crate::real::Real;
 
+/// `GAGAVATAR_NO_AVX512=1` forces the array kernels (to compare paths or debug).
+pub(crate) fn simd_disabled() -> bool {
+    std::env::var_os("GAGAVATAR_NO_AVX512").is_some_and(|v| v != "0")
+}
+
 /// Lanes per vector: the pixels of a 4x4 block.
 pub const WIDTH: usize = 16;
 /// One bit per lane.

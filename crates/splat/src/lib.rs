@@ -10,6 +10,7 @@ pub mod binning;
 pub mod camera;
 pub mod error;
 pub mod lanes;
+pub mod params;
 pub mod project;
 pub mod raster;
 pub mod real;

@@ -419,7 +419,7 @@ pub fn project<T: Real>(cam: &CamK<T>, geom: &[T]) -> Projected<T> {
 }
 
 /// Backward of [`project`] for all Gaussians: `screen` holds each Gaussian's
-/// [`crate::raster::SCREEN`] screen-space gradients (mean x, mean y, conic A, B, C, opacity),
+/// [`crate::params::SCREEN`] screen-space gradients (mean x, mean y, conic A, B, C, opacity),
 /// `out` receives dL/dgeom (`GEOM` per Gaussian); culled Gaussians are left untouched.
 pub fn project_backward<T: Real>(
     cam: &CamK<T>,
@@ -428,7 +428,7 @@ pub fn project_backward<T: Real>(
     radius: &[u32],
     out: &mut [T],
 ) {
-    const S: usize = crate::raster::SCREEN;
+    const S: usize = crate::params::SCREEN;
     const B: usize = PROJECT_BLOCK;
     let avx2 = has_avx2();
     let geom = GeomIn::split(geom);
@@ -480,7 +480,7 @@ fn project_backward_block<T: Real>(
     radius: &[u32],
     mut out: GeomOut<T>,
 ) {
-    for (i, (s, &r)) in screen.chunks(crate::raster::SCREEN).zip(radius).enumerate() {
+    for (i, (s, &r)) in screen.chunks(crate::params::SCREEN).zip(radius).enumerate() {
         if r == 0 {
             continue;
         }
@@ -523,7 +523,7 @@ fn as_f32_cam<T: Real>(cam: &CamK<T>) -> Option<&CamK<f32>> {
 /// Whether the AVX-512 projection runs (not under `GAGAVATAR_NO_AVX512`, like the raster).
 #[cfg(target_arch = "x86_64")]
 fn has_avx512() -> bool {
-    std::arch::is_x86_feature_detected!("avx512f") && !crate::raster::simd_disabled()
+    std::arch::is_x86_feature_detected!("avx512f") && !crate::lanes::simd_disabled()
 }
 
 /// Sixteen Gaussians at a time in AVX-512 lanes ([`project_lanes`]), the rest one by one.
@@ -726,7 +726,7 @@ fn project_lanes<T: Real, L: Lanes<T>>(
     let mx = ndc_x.add(one).mul(s(cam.w)).sub(one).mul(half);
     let my = ndc_y.add(one).mul(s(cam.h)).sub(one).mul(half);
     let opacity = v[3];
-    let faint = opacity.lt(s(T::lit(crate::raster::MIN_ALPHA)));
+    let faint = opacity.lt(s(T::lit(crate::params::MIN_ALPHA)));
     let ln = s(T::lit(255.0)).mul(opacity).ln_bound().max(zero);
     let cut = s(T::lit(2.0))
         .mul(ln)
@@ -819,7 +819,7 @@ fn project_one<T: Real>(cam: &CamK<T>, g: &[T]) -> (Splat2D<T>, T, u32, [u16; 4]
     }
     // alpha >= 1/255 needs o exp(power) >= 1/255, i.e. d^T Q d <= 2 ln(255 o).
     let o = opacity.as_f64();
-    let cut = if opacity < T::lit(crate::raster::MIN_ALPHA) {
+    let cut = if opacity < T::lit(crate::params::MIN_ALPHA) {
         -1.0
     } else {
         2.0 * (255.0 * o).ln().max(0.0) * CUT_INFLATE + CUT_PAD

@@ -13,22 +13,15 @@
 use crate::binning::Bins;
 #[cfg(target_arch = "x86_64")]
 use crate::lanes::Z16;
-use crate::lanes::{Lanes, Mask, ALL, P16, WIDTH};
+use crate::lanes::{simd_disabled, Lanes, Mask, ALL, P16, WIDTH};
 use crate::project::{Projected, Splat2D, TILE};
 use crate::real::Real;
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
 
-/// Alpha is clamped to this value so a single Gaussian never makes a pixel fully opaque.
-pub const MAX_ALPHA: f64 = 0.99;
-/// Contributions with alpha below 1/255 are skipped.
-pub const MIN_ALPHA: f64 = 1.0 / 255.0;
-/// A pixel stops before a Gaussian would take its transmittance below this.
-pub const MIN_TRANSMITTANCE: f64 = 1e-4;
+pub use crate::params::{MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, SCREEN};
 /// Gaussian slots per reduction chunk in the backward.
 const REDUCE_CHUNK: usize = 4096;
-/// Screen-space gradient entries per Gaussian: mean x, mean y, conic A, B, C, opacity.
-pub const SCREEN: usize = 6;
 
 /// Per-pixel results of the forward that the backward and callers need.
 #[derive(Debug, Clone, Default)]
@@ -231,11 +224,6 @@ enum Path {
     Avx2,
     /// Plain arrays, baseline instructions.
     Portable,
-}
-
-/// `GAGAVATAR_NO_AVX512=1` forces the array kernels (to compare paths or debug).
-pub(crate) fn simd_disabled() -> bool {
-    std::env::var_os("GAGAVATAR_NO_AVX512").is_some_and(|v| v != "0")
 }
 
 fn path<T: Real>() -> Path {

@@ -7,11 +7,10 @@
 //! release's unnormalised ones and are kept as they are.
 
 use crate::error::{Result, SplatError};
-use candle_core::{DType, Device, Tensor};
+use candle_core::{Device, Tensor};
+use gagavatar_formats::tensor::RawData;
+use gagavatar_formats::FormatError;
 use std::path::Path;
-
-/// The atomic-output mechanism lives in `gagavatar-formats`; re-exported for existing callers.
-pub use gagavatar_formats::atomic::{replace_dir, temp_sibling, write_via_temp};
 
 /// Zeroth-order spherical-harmonic constant used by 3DGS to store colours.
 const SH_C0: f64 = 0.282_094_791_773_878_14;
@@ -26,6 +25,20 @@ pub struct GaussianScene {
     pub opacities: Vec<f32>,
     pub scales: Vec<f32>,
     pub rotations: Vec<f32>,
+}
+
+/// A file-level error (unreadable, not PLY / safetensors); its message already names the file.
+fn file_err(path: &Path, e: FormatError) -> SplatError {
+    match e {
+        FormatError::Io { err, .. } => SplatError::Io {
+            path: path.display().to_string(),
+            err,
+        },
+        other => SplatError::Scene {
+            path: path.display().to_string(),
+            msg: other.detail(),
+        },
+    }
 }
 
 fn scene_err(path: &Path, msg: impl Into<String>) -> SplatError {
@@ -86,13 +99,14 @@ impl GaussianScene {
     }
 
     pub fn load_safetensors(path: &Path) -> Result<Self> {
-        let tensors = candle_core::safetensors::load(path, &Device::Cpu)
-            .map_err(|e| scene_err(path, e.to_string()))?;
+        let tensors = gagavatar_formats::safetensors::read_safetensors(path)
+            .map_err(|e| file_err(path, e))?
+            .tensors;
         let get = |name: &str, k: Option<usize>| -> Result<(Vec<f32>, usize, usize)> {
             let t = tensors
                 .get(name)
                 .ok_or_else(|| scene_err(path, format!("missing tensor `{name}`")))?;
-            let dims = t.dims();
+            let dims = &t.shape;
             let ok = dims.len() == 2 && k.is_none_or(|k| dims[1] == k);
             if !ok {
                 let want = k.map_or("[N, C]".to_string(), |k| format!("[N, {k}]"));
@@ -101,12 +115,13 @@ impl GaussianScene {
                     format!("tensor `{name}` has shape {dims:?}, expected {want}"),
                 ));
             }
-            let v = t
-                .to_dtype(DType::F32)
-                .and_then(|t| t.flatten_all())
-                .and_then(|t| t.to_vec1::<f32>())
-                .map_err(|e| scene_err(path, format!("tensor `{name}`: {e}")))?;
-            Ok((v, dims[0], dims[1]))
+            let RawData::Float(v) = &t.data else {
+                return Err(scene_err(
+                    path,
+                    format!("tensor `{name}` is {}, expected floats", t.file_dtype),
+                ));
+            };
+            Ok((v.clone(), dims[0], dims[1]))
         };
         let (means, n, _) = get("means", Some(3))?;
         let (features, nf, channels) = get("features", None)?;
@@ -142,12 +157,8 @@ impl GaussianScene {
     }
 
     pub fn load_ply(path: &Path) -> Result<Self> {
-        let bytes = std::fs::read(path).map_err(|source| SplatError::Io {
-            path: path.display().to_string(),
-            source,
-        })?;
-        let ply = ply::parse(&bytes).map_err(|m| scene_err(path, m))?;
-        let col = |name: &str| ply.names.iter().position(|p| p == name);
+        let ply = gagavatar_formats::ply::read_ply(path).map_err(|e| file_err(path, e))?;
+        let col = |name: &str| ply.column(name);
         let need = |name: &str| {
             col(name).ok_or_else(|| scene_err(path, format!("missing vertex property `{name}`")))
         };
@@ -223,10 +234,6 @@ impl GaussianScene {
     pub fn save_ply(&self, path: &Path) -> Result<()> {
         self.validate().map_err(|m| scene_err(path, m))?;
         let n = self.len();
-        let mut header = String::from("ply\nformat binary_little_endian 1.0\n");
-        header.push_str(PLY_MARKER);
-        header.push('\n');
-        header.push_str(&format!("element vertex {n}\n"));
         let mut props: Vec<String> = [
             "x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2",
         ]
@@ -237,35 +244,29 @@ impl GaussianScene {
         props.extend((0..3).map(|i| format!("scale_{i}")));
         props.extend((0..4).map(|i| format!("rot_{i}")));
         props.extend((0..self.channels).map(|i| format!("feat_{i}")));
-        for p in &props {
-            header.push_str(&format!("property float {p}\n"));
-        }
-        header.push_str("end_header\n");
-        let mut buf = header.into_bytes();
-        buf.reserve(n * props.len() * 4);
+        let mut values: Vec<f32> = Vec::with_capacity(n * props.len());
         let c = self.channels;
         for i in 0..n {
-            let mut row: Vec<f32> = Vec::with_capacity(props.len());
-            row.extend_from_slice(&self.means[i * 3..i * 3 + 3]);
-            row.extend_from_slice(&[0.0, 0.0, 0.0]);
+            values.extend_from_slice(&self.means[i * 3..i * 3 + 3]);
+            values.extend_from_slice(&[0.0, 0.0, 0.0]);
             for k in 0..3 {
                 let colour = if k < c { self.features[i * c + k] } else { 0.0 };
-                row.push(((colour as f64 - 0.5) / SH_C0) as f32);
+                values.push(((colour as f64 - 0.5) / SH_C0) as f32);
             }
             let o = (self.opacities[i] as f64).clamp(1e-7, 1.0 - 1e-7);
-            row.push((o / (1.0 - o)).ln() as f32);
-            row.extend(
+            values.push((o / (1.0 - o)).ln() as f32);
+            values.extend(
                 self.scales[i * 3..i * 3 + 3]
                     .iter()
                     .map(|s| s.max(1e-30).ln()),
             );
-            row.extend_from_slice(&self.rotations[i * 4..i * 4 + 4]);
-            row.extend_from_slice(&self.features[i * c..(i + 1) * c]);
-            for v in row {
-                buf.extend_from_slice(&v.to_le_bytes());
-            }
+            values.extend_from_slice(&self.rotations[i * 4..i * 4 + 4]);
+            values.extend_from_slice(&self.features[i * c..(i + 1) * c]);
         }
-        write_atomic(path, &buf)
+        let names: Vec<&str> = props.iter().map(String::as_str).collect();
+        let marker = PLY_MARKER.trim_start_matches("comment ");
+        gagavatar_formats::ply::write_ply(path, &[marker], &names, &values)
+            .map_err(|e| file_err(path, e))
     }
 }
 
@@ -434,164 +435,5 @@ mod unit_quaternion_tests {
                 }
             }
         }
-    }
-}
-
-/// Writes `bytes` to a temp file beside `path`, then renames it over `path`, so a crash never
-/// leaves a half-written file.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let io = |source| SplatError::Io {
-        path: path.display().to_string(),
-        source,
-    };
-    write_via_temp(path, |tmp| std::fs::write(tmp, bytes).map_err(io), io)
-}
-
-mod ply {
-    //! Minimal PLY reader: one `vertex` element of scalar properties (other elements must come
-    //! after it), ascii or binary little endian.
-
-    pub struct Ply {
-        pub names: Vec<String>,
-        pub comments: Vec<String>,
-        pub rows: usize,
-        pub values: Vec<f64>,
-    }
-
-    #[derive(Clone, Copy)]
-    enum Ty {
-        I8,
-        U8,
-        I16,
-        U16,
-        I32,
-        U32,
-        F32,
-        F64,
-    }
-
-    impl Ty {
-        fn parse(s: &str) -> Option<Self> {
-            Some(match s {
-                "char" | "int8" => Ty::I8,
-                "uchar" | "uint8" => Ty::U8,
-                "short" | "int16" => Ty::I16,
-                "ushort" | "uint16" => Ty::U16,
-                "int" | "int32" => Ty::I32,
-                "uint" | "uint32" => Ty::U32,
-                "float" | "float32" => Ty::F32,
-                "double" | "float64" => Ty::F64,
-                _ => return None,
-            })
-        }
-        fn size(self) -> usize {
-            match self {
-                Ty::I8 | Ty::U8 => 1,
-                Ty::I16 | Ty::U16 => 2,
-                Ty::I32 | Ty::U32 | Ty::F32 => 4,
-                Ty::F64 => 8,
-            }
-        }
-        fn read(self, b: &[u8]) -> f64 {
-            match self {
-                Ty::I8 => b[0] as i8 as f64,
-                Ty::U8 => b[0] as f64,
-                Ty::I16 => i16::from_le_bytes([b[0], b[1]]) as f64,
-                Ty::U16 => u16::from_le_bytes([b[0], b[1]]) as f64,
-                Ty::I32 => i32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
-                Ty::U32 => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
-                Ty::F32 => f32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
-                Ty::F64 => f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]),
-            }
-        }
-    }
-
-    /// Upper bound on the vertex count, so a corrupt header cannot ask for absurd memory.
-    const MAX_ROWS: usize = 100_000_000;
-
-    pub fn parse(bytes: &[u8]) -> Result<Ply, String> {
-        let end = bytes
-            .windows(11)
-            .position(|w| w == b"end_header\n")
-            .ok_or("not a PLY file: no end_header")?;
-        let header = std::str::from_utf8(&bytes[..end]).map_err(|_| "PLY header is not text")?;
-        let mut lines = header.lines();
-        if lines.next().map(str::trim) != Some("ply") {
-            return Err("not a PLY file: missing `ply` magic".into());
-        }
-        let mut binary = None;
-        let mut rows = None;
-        let mut in_vertex = false;
-        let mut names = Vec::new();
-        let mut types = Vec::new();
-        let mut comments = Vec::new();
-        for line in lines {
-            let parts: Vec<&str> = line.split_whitespace().collect();
-            match parts.as_slice() {
-                ["format", "binary_little_endian", _] => binary = Some(true),
-                ["format", "ascii", _] => binary = Some(false),
-                ["format", f, ..] => return Err(format!("unsupported PLY format `{f}`")),
-                ["comment", ..] => comments.push(line.trim().to_string()),
-                ["element", "vertex", n] => {
-                    if rows.is_some() {
-                        return Err("more than one vertex element".into());
-                    }
-                    let n: usize = n.parse().map_err(|_| format!("bad vertex count `{n}`"))?;
-                    if n > MAX_ROWS {
-                        return Err(format!("vertex count {n} exceeds {MAX_ROWS}"));
-                    }
-                    rows = Some(n);
-                    in_vertex = true;
-                }
-                ["element", ..] => {
-                    if rows.is_none() {
-                        return Err("elements before `vertex` are not supported".into());
-                    }
-                    in_vertex = false;
-                }
-                ["property", "list", ..] if in_vertex => {
-                    return Err("list properties on vertices are not supported".into())
-                }
-                ["property", ty, name] if in_vertex => {
-                    let t = Ty::parse(ty).ok_or_else(|| format!("unknown property type `{ty}`"))?;
-                    types.push(t);
-                    names.push(name.to_string());
-                }
-                _ => {}
-            }
-        }
-        let binary = binary.ok_or("PLY header has no format line")?;
-        let rows = rows.ok_or("PLY has no vertex element")?;
-        let body = &bytes[end + 11..];
-        let mut values = Vec::with_capacity(rows * names.len());
-        if binary {
-            let stride: usize = types.iter().map(|t| t.size()).sum();
-            if body.len() < rows * stride {
-                return Err(format!(
-                    "PLY body is truncated: {} bytes for {rows} vertices of {stride} bytes",
-                    body.len()
-                ));
-            }
-            for r in 0..rows {
-                let mut off = r * stride;
-                for t in &types {
-                    values.push(t.read(&body[off..off + t.size()]));
-                    off += t.size();
-                }
-            }
-        } else {
-            let text = std::str::from_utf8(body).map_err(|_| "ascii PLY body is not text")?;
-            let mut it = text.split_whitespace();
-            for _ in 0..rows * names.len() {
-                let tok = it.next().ok_or("ascii PLY body is truncated")?;
-                values.push(tok.parse().map_err(|_| format!("bad number `{tok}`"))?);
-            }
-        }
-        Ok(Ply {
-            names,
-            comments,
-            rows,
-            values,
-        })
     }
 }

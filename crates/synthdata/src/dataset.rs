@@ -21,7 +21,7 @@ use candle_core::{DType, Device, Tensor};
 use gagavatar_data::{encode_png, write_release_dataset, DatasetSplits, TrackedFrame};
 use gagavatar_flame::landmarks::NDC_FOCAL;
 use gagavatar_flame::{FlameAsset, FlameModel, FLAME_SCALE};
-use gagavatar_splat::scene::temp_sibling;
+use gagavatar_formats::atomic::temp_sibling;
 use image::RgbImage;
 use rayon::prelude::*;
 
@@ -677,7 +677,7 @@ impl Generator {
 /// Renames the finished `tmp` folder to `dir`; an existing `dir` is moved aside first and
 /// deleted once the new one is in place (moved back if that fails).
 fn move_into_place(tmp: &Path, dir: &Path) -> Result<()> {
-    gagavatar_splat::scene::replace_dir(tmp, dir).map_err(|e| SynthError::Output {
+    gagavatar_formats::atomic::replace_dir(tmp, dir).map_err(|e| SynthError::Output {
         path: dir.to_owned(),
         reason: format!("cannot move the new folder into place: {e}"),
     })

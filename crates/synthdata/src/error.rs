@@ -13,9 +13,9 @@ pub enum SynthError {
     /// A mesh the rasterizer cannot draw (bad face index, non-finite vertex).
     #[error("rasterizer: {0}")]
     Mesh(String),
-    #[error("FLAME: {0}")]
+    #[error(transparent)]
     Flame(#[from] gagavatar_flame::FlameError),
-    #[error("tensor computation failed: {0}")]
+    #[error(transparent)]
     Candle(#[from] candle_core::Error),
     #[error(transparent)]
     Data(#[from] gagavatar_data::DataError),

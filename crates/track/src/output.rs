@@ -24,9 +24,9 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use gagavatar_data::records::records_to_pickle;
-use gagavatar_data::write_lmdb;
 use gagavatar_flame::TrackedFrame;
 use gagavatar_formats::atomic::{replace_dir, temp_sibling};
+use gagavatar_formats::lmdb::write_lmdb;
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
 

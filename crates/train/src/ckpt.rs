@@ -127,7 +127,7 @@ pub fn write_safetensors_atomic(
         .map(|(k, t)| Ok((k.clone(), TensorView::new(t)?)))
         .collect::<RunResult<_>>()?;
     let refs: Vec<(&str, &TensorView)> = views.iter().map(|(k, v)| (k.as_str(), v)).collect();
-    gagavatar_splat::scene::write_via_temp(
+    gagavatar_formats::atomic::write_via_temp(
         path,
         |tmp| {
             safetensors::tensor::serialize_to_file(refs, Some(metadata), tmp)

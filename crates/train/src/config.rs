@@ -1,8 +1,10 @@
 //! The training configuration: a TOML file users edit (`crates/train/configs/tiny.toml`,
 //! `release.toml`; `gagavatar train --preset NAME` uses these embedded copies, `--config FILE`
-//! a user's own). Every section and key is optional; a missing one takes the release recipe's
-//! value (spec section 11), so `release.toml` only spells the recipe out. Unknown keys are
-//! errors, so a typo never silently trains with a default.
+//! a user's own). Two keys are required because they decide what a run costs: `[model] preset`
+//! (the network size: the release's is a 6 GB model) and `[train] steps` (the run length; the
+//! command line's `--steps` may give it instead). Every other key is optional and takes the
+//! release recipe's value (spec section 11). Unknown keys are errors, so a typo never silently
+//! trains with a default.
 //!
 //! `[model]` names a network preset (`release`, `small`, `tiny`) and may override any field of
 //! [`ModelConfig`], including the ablation switches (`one_plane`, `no_fid_in_expression`,
@@ -283,11 +285,62 @@ fn resolve_model(mut table: toml::Table, path: Option<&Path>) -> RunResult<Model
 }
 
 impl TrainConfig {
-    /// Parses a configuration file's text (`path` only names it in errors).
+    /// Parses a configuration file's text (`path` only names it in errors). `[model] preset`
+    /// and `[train] steps` must be present (see the module docs).
     pub fn from_toml_str(text: &str, path: Option<&Path>) -> RunResult<Self> {
+        Self::from_toml_str_with_steps(text, path, None)
+    }
+
+    /// [`TrainConfig::from_toml_str`] with the run length given separately (the command
+    /// line's `--steps`): it replaces `[train] steps`, which the file may then leave out.
+    pub fn from_toml_str_with_steps(
+        text: &str,
+        path: Option<&Path>,
+        steps: Option<u64>,
+    ) -> RunResult<Self> {
         let mut doc: toml::Table = text
             .parse()
             .map_err(|e: toml::de::Error| config_err(path, e.to_string()))?;
+        let has = |section: &str, key: &str| {
+            doc.get(section)
+                .and_then(|s| s.as_table())
+                .is_some_and(|t| t.contains_key(key))
+        };
+        let mut missing = Vec::new();
+        if !has("model", "preset") {
+            missing.push(
+                "`[model] preset` (the network size: \"tiny\" trains on a CPU, \"release\" is the \
+                 paper's 6 GB model)",
+            );
+        }
+        if !has("train", "steps") && steps.is_none() {
+            missing.push("`[train] steps` (the run length; or pass --steps)");
+        }
+        if !missing.is_empty() {
+            return Err(config_err(
+                path,
+                format!(
+                    "the configuration does not say {}; start from crates/train/configs/tiny.toml \
+                     or release.toml",
+                    missing.join(" or ")
+                ),
+            ));
+        }
+        if let Some(n) = steps {
+            if let Some(toml::Value::Table(t)) = doc.get_mut("train") {
+                t.insert(
+                    "steps".into(),
+                    toml::Value::Integer(n.min(i64::MAX as u64) as i64),
+                );
+            } else {
+                let mut t = toml::Table::new();
+                t.insert(
+                    "steps".into(),
+                    toml::Value::Integer(n.min(i64::MAX as u64) as i64),
+                );
+                doc.insert("train".into(), toml::Value::Table(t));
+            }
+        }
         let model = match doc.remove("model") {
             None => toml::Table::new(),
             Some(toml::Value::Table(t)) => t,
@@ -311,8 +364,14 @@ impl TrainConfig {
     }
 
     pub fn read(path: &Path) -> RunResult<Self> {
+        Self::read_with_steps(path, None)
+    }
+
+    /// [`TrainConfig::read`] with the run length given separately (see
+    /// [`TrainConfig::from_toml_str_with_steps`]).
+    pub fn read_with_steps(path: &Path, steps: Option<u64>) -> RunResult<Self> {
         let text = std::fs::read_to_string(path).map_err(io_err(path, "cannot read"))?;
-        Self::from_toml_str(&text, Some(path))
+        Self::from_toml_str_with_steps(&text, Some(path), steps)
     }
 
     /// An embedded preset file (`tiny`, `release`).

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 /// empty sets, degenerate boxes) are errors, never panics.
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
-    #[error("{0}")]
+    #[error(transparent)]
     Candle(#[from] candle_core::Error),
     #[error(transparent)]
     Net(#[from] gagavatar_net::NetError),

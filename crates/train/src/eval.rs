@@ -276,7 +276,7 @@ pub fn grid_image(rows: &[GridRow], size: usize) -> image::RgbImage {
 /// Writes the grid as a PNG, atomically.
 pub fn write_grid(path: &Path, rows: &[GridRow], size: usize) -> RunResult<()> {
     let png = gagavatar_data::encode_png(&grid_image(rows, size))?;
-    gagavatar_splat::scene::write_atomic(path, &png).map_err(|e| ckpt_err(path, e.to_string()))
+    gagavatar_formats::atomic::write_atomic(path, &png).map_err(|e| ckpt_err(path, e.detail()))
 }
 
 /// The device a model's weights live on.

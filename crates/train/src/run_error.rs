@@ -13,7 +13,7 @@ pub enum RunError {
     Net(#[from] gagavatar_net::NetError),
     #[error(transparent)]
     Data(#[from] gagavatar_data::DataError),
-    #[error("{0}")]
+    #[error(transparent)]
     Candle(#[from] candle_core::Error),
     /// A configuration file or value that cannot be used.
     #[error("{}{reason}", .path.as_ref().map(|p| format!("{}: ", p.display())).unwrap_or_default())]
@@ -34,11 +34,13 @@ pub enum RunError {
         frame: String,
         reason: String,
     },
-    #[error("{path}: {action}: {source}")]
+    /// The cause is part of the message and deliberately not a `source()`, which the CLI
+    /// would print a second time.
+    #[error("{}: {action}: {err}", path.display())]
     Io {
         path: PathBuf,
         action: &'static str,
-        source: std::io::Error,
+        err: std::io::Error,
     },
     /// A run folder or checkpoint that is missing, inconsistent or unreadable.
     #[error("{path}: {reason}")]
@@ -52,11 +54,7 @@ pub type RunResult<T> = std::result::Result<T, RunError>;
 
 pub(crate) fn io_err(path: &Path, action: &'static str) -> impl FnOnce(std::io::Error) -> RunError {
     let path = path.to_owned();
-    move |source| RunError::Io {
-        path,
-        action,
-        source,
-    }
+    move |err| RunError::Io { path, action, err }
 }
 
 pub(crate) fn config_err(path: Option<&Path>, reason: impl Into<String>) -> RunError {

@@ -31,7 +31,7 @@ use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarMap;
 use gagavatar_data::Dataset;
 use gagavatar_flame::{synthesize, FlameAsset, FlameModel, LoadOptions};
-use gagavatar_net::checkpoint::{read_weights, write_tensors};
+use gagavatar_net::checkpoint::{read_weights, write_tensors_with_metadata, FLAME_METADATA_KEY};
 use gagavatar_net::model::GagAvatar;
 use gagavatar_net::style_unet::Noise;
 use gagavatar_net::train::{export_weights, trainable_model};
@@ -684,16 +684,16 @@ impl Run {
     fn write_config(&self) -> RunResult<()> {
         let path = self.dir.join(CONFIG_FILE);
         let text = self.state.cfg.to_toml_string()?;
-        gagavatar_splat::scene::write_atomic(&path, text.as_bytes())
-            .map_err(|e| ckpt_err(&path, e.to_string()))
+        gagavatar_formats::atomic::write_atomic(&path, text.as_bytes())
+            .map_err(|e| ckpt_err(&path, e.detail()))
     }
 
     fn write_metrics(&self) -> RunResult<()> {
         let path = self.dir.join(METRICS_FILE);
         let mut text = self.metrics.join("\n");
         text.push('\n');
-        gagavatar_splat::scene::write_atomic(&path, text.as_bytes())
-            .map_err(|e| ckpt_err(&path, e.to_string()))
+        gagavatar_formats::atomic::write_atomic(&path, text.as_bytes())
+            .map_err(|e| ckpt_err(&path, e.detail()))
     }
 
     /// Writes `checkpoint.safetensors` and `weights.safetensors` for the current step.
@@ -701,7 +701,12 @@ impl Run {
         let s = &self.state;
         let mut model = s.export()?;
         let weights_path = self.dir.join(WEIGHTS_FILE);
-        write_tensors(&weights_path, &model, Some(&s.cfg.model))?;
+        // The FLAME asset the weights go with, so using them with another one can be reported.
+        let flame_meta = BTreeMap::from([(
+            FLAME_METADATA_KEY.to_string(),
+            format!("{:016x}", self.source.flame.asset_fingerprint),
+        )]);
+        write_tensors_with_metadata(&weights_path, &model, Some(&s.cfg.model), &flame_meta)?;
         for (k, t) in &self.percep_tensors {
             model.insert(k.clone(), t.clone());
         }

@@ -65,29 +65,65 @@ fn presets_parse_round_trip_and_release_is_the_recipe() {
         (r.train.batch, r.train.steps, r.val.frames),
         (8, 200_000, 16)
     );
-    // An empty file is the release recipe too.
-    let empty = TrainConfig::from_toml_str("", None).unwrap();
+    // The two keys that decide what a run costs are never silent defaults: an empty or partial
+    // file names what it lacks instead of training the release-size model.
+    for (text, lacks) in [
+        ("", &["[model] preset", "[train] steps"][..]),
+        ("[train]\nsteps = 10", &["[model] preset"]),
+        ("[model]\npreset = \"tiny\"", &["[train] steps"]),
+    ] {
+        let msg = TrainConfig::from_toml_str(text, Some(Path::new("my.toml")))
+            .unwrap_err()
+            .to_string();
+        assert!(msg.contains("my.toml"), "{msg}");
+        for key in lacks {
+            assert!(msg.contains(key), "`{text}`: {msg}");
+        }
+    }
+    // Only the two: the rest is the release recipe; `--steps` may stand in for the file's.
+    let minimal =
+        TrainConfig::from_toml_str_with_steps("[model]\npreset = \"release\"", None, Some(200_000))
+            .unwrap();
     assert_eq!(
-        (empty.model.clone(), empty.adam()),
+        (minimal.model.clone(), minimal.adam()),
         (r.model.clone(), r.adam())
     );
 
     // Ablations and other model fields are overridable; typos are errors.
     let c = TrainConfig::from_toml_str(
         "[model]\npreset = \"tiny\"\none_plane = true\nno_fid_in_expression = true\n\
-         no_neural_renderer = true\nfreeze_backbone = true\n[loss]\nlifting = false\n",
+         no_neural_renderer = true\nfreeze_backbone = true\n[loss]\nlifting = false\n\
+         [train]\nsteps = 5\n",
         None,
     )
     .unwrap();
     assert!(c.model.one_plane && c.model.no_fid_in_expression && c.model.no_neural_renderer);
     assert!(c.model.backbone_frozen() && !c.losses().lifting);
     for (text, needle) in [
-        ("[model]\npreset = \"huge\"", "preset `huge` is unknown"),
-        ("[model]\none_plnae = true", "no key `one_plnae`"),
-        ("[train]\nstepz = 3", "stepz"),
-        ("[optim]\nbeta2 = 1.5", "beta2"),
-        ("[train]\nsteps = 0", "steps must be > 0"),
-        ("[model]\nimage_size = 100", "power of two"),
+        (
+            "[model]\npreset = \"huge\"\n[train]\nsteps = 5",
+            "preset `huge` is unknown",
+        ),
+        (
+            "[model]\npreset = \"tiny\"\none_plnae = true\n[train]\nsteps = 5",
+            "no key `one_plnae`",
+        ),
+        (
+            "[model]\npreset = \"tiny\"\n[train]\nsteps = 5\nstepz = 3",
+            "stepz",
+        ),
+        (
+            "[model]\npreset = \"tiny\"\n[train]\nsteps = 5\n[optim]\nbeta2 = 1.5",
+            "beta2",
+        ),
+        (
+            "[model]\npreset = \"tiny\"\n[train]\nsteps = 0",
+            "steps must be > 0",
+        ),
+        (
+            "[model]\npreset = \"tiny\"\nimage_size = 100\n[train]\nsteps = 5",
+            "power of two",
+        ),
     ] {
         let err = TrainConfig::from_toml_str(text, Some(Path::new("my.toml"))).unwrap_err();
         let msg = err.to_string();

@@ -57,7 +57,7 @@ impl GifSink {
         let w = u16::try_from(width).map_err(|_| too_large())?;
         let h = u16::try_from(height).map_err(|_| too_large())?;
         check_file_target(path)?;
-        let tmp = TempPath::file(temp_sibling(path, "")?);
+        let tmp = TempPath::file(temp_sibling(path)?);
         let file = File::create(tmp.path()).map_err(|e| VideoError::io(tmp.path(), e))?;
         let mut encoder = gif::Encoder::new(BufWriter::new(file), w, h, &[])
             .map_err(|e| gif_err(tmp.path(), e))?;

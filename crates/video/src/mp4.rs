@@ -350,7 +350,7 @@ impl Mp4Sink {
     ) -> Result<Self, VideoError> {
         let enc = H264Encoder::new(width, height, fps)?;
         check_file_target(path)?;
-        let data_tmp = TempPath::file(temp_sibling(path, "mdat.")?);
+        let data_tmp = TempPath::file(temp_sibling(path)?);
         // Read back in `finish`, hence read + write.
         let file = std::fs::OpenOptions::new()
             .read(true)
@@ -441,7 +441,7 @@ impl Mp4Sink {
         }
         let moov = moov(&ix, start, co64);
 
-        let tmp = TempPath::file(temp_sibling(&target, "")?);
+        let tmp = TempPath::file(temp_sibling(&target)?);
         let io = |e| VideoError::io(tmp.path(), e);
         let mut out = BufWriter::new(File::create(tmp.path()).map_err(io)?);
         out.write_all(&ftyp).map_err(io)?;
@@ -1297,6 +1297,25 @@ impl H264Decoder {
 pub fn read_mp4_info(path: &Path) -> Result<Mp4Info, VideoError> {
     let (_, track) = open_track(path)?;
     track.info(path)
+}
+
+/// Demuxes the first video track without decoding it: the box tree, the sample tables, the
+/// timing checks and every sample's NAL units read (as Annex-B). Returns the sample count. The
+/// container half of [`decode_mp4`], for checks and fuzzing.
+pub fn demux_mp4(path: &Path) -> Result<usize, VideoError> {
+    let (file, track) = open_track(path)?;
+    track.check_timing(path)?;
+    let _ = track.composition_times();
+    let avc = track.require_avc(path)?;
+    param_sets_annexb(path, avc)?;
+    let mut samples = SampleReader::new(path, file, &track)?;
+    let mut annexb = Vec::new();
+    let mut n = 0;
+    while let Some(i) = samples.next_sample(&mut annexb) {
+        i?;
+        n += 1;
+    }
+    Ok(n)
 }
 
 /// Decodes every frame of the first video track (H.264, via OpenH264) to RGB u8 HWC of the

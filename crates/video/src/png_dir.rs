@@ -40,7 +40,7 @@ impl PngDirSink {
             .filter(|&h| h < 1 << 31)
             .ok_or_else(too_large)?;
         check_dir_target(path)?;
-        let tmp_path = temp_sibling(path, "")?;
+        let tmp_path = temp_sibling(path)?;
         std::fs::create_dir(&tmp_path).map_err(|e| VideoError::io(&tmp_path, e))?;
         Ok(PngDirSink {
             target: path.to_path_buf(),

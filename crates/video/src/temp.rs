@@ -1,30 +1,20 @@
 //! Hidden temporary outputs beside the target, removed unless they were renamed into place.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
 
 use crate::VideoError;
 
-/// Distinguishes two writers for the same target in one process (the pid alone would not).
-static COUNTER: AtomicUsize = AtomicUsize::new(0);
-
-/// `dir/.name.<tag>tmp<pid>.<n>`: same directory as `path` so the final rename never crosses
-/// file systems, and hidden so a half-written video is not picked up by anyone.
-pub(crate) fn temp_sibling(path: &Path, tag: &str) -> Result<PathBuf, VideoError> {
-    let name = path.file_name().ok_or_else(|| VideoError::BadPath {
-        path: path.to_path_buf(),
-        reason: "the output path has no file name".into(),
-    })?;
-    let dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let n = COUNTER.fetch_add(1, Ordering::Relaxed);
-    Ok(dir.join(format!(
-        ".{}.{tag}tmp{}.{n}",
-        name.to_string_lossy(),
-        std::process::id()
-    )))
+/// A hidden name beside `path` from the project's one naming scheme
+/// ([`gagavatar_formats::atomic::temp_sibling`]: same directory, unique per process and call),
+/// after checking that `path` names a file at all.
+pub(crate) fn temp_sibling(path: &Path) -> Result<PathBuf, VideoError> {
+    if path.file_name().is_none() {
+        return Err(VideoError::BadPath {
+            path: path.to_path_buf(),
+            reason: "the output path has no file name".into(),
+        });
+    }
+    Ok(gagavatar_formats::atomic::temp_sibling(path))
 }
 
 /// A temporary file or directory that is deleted on drop unless [`TempPath::persist`] renamed it.

@@ -5,7 +5,7 @@
 //! (for strided convolutions; stride 1 reuses the forward with flipped weights).
 
 use super::elem::{balanced_chunk, gemm, Elem, Mat, SendPtr};
-use super::Geom;
+use super::geom::Geom;
 use rayon::prelude::*;
 
 /// Patch-matrix budget per band in elements (~1 MiB of f32): big enough that the GEMM's

@@ -11,7 +11,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::elem::{balanced_chunk, gemm, multiversion, Elem, Mat, SendPtr};
-use super::Geom;
+use super::geom::Geom;
 use rayon::prelude::*;
 
 /// Tiles transformed side by side in local arrays, so the transforms vectorise across tiles.

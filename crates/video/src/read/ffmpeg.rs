@@ -20,7 +20,7 @@ use std::thread::JoinHandle;
 use image::RgbImage;
 use serde_json::Value;
 
-use super::{Decoder, RawFrame, Source, Start, VideoMeta, PTS_EPS};
+use super::source::{Decoder, RawFrame, Source, Start, VideoMeta, PTS_EPS};
 use crate::VideoError;
 
 /// The ffmpeg and ffprobe programs found on PATH, and ffmpeg's version.

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use gagavatar_formats::image::{read_image, DecodeOptions, DecodedImage};
 
-use super::{Decoder, RawFrame, Source, Start, VideoMeta, PTS_EPS};
+use super::source::{Decoder, RawFrame, Source, Start, VideoMeta, PTS_EPS};
 use crate::VideoError;
 
 /// File extensions taken from a folder (any case); other files (a `frames.json`, hidden files)

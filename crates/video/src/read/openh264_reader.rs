@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use image::RgbImage;
 
 use super::h264_params::{parse_pps, parse_sps, Sps};
-use super::{Decoder, RawFrame, Source, Start, VideoMeta, PTS_EPS};
+use super::source::{Decoder, RawFrame, Source, Start, VideoMeta, PTS_EPS};
 use crate::mp4::{open_track, param_sets_annexb, H264Decoder, SampleReader, Track};
 use crate::yuv::YuvMatrix;
 use crate::VideoError;
@@ -232,7 +232,7 @@ pub(crate) fn plan(path: &Path, head: &[u8]) -> Result<Plan, Refusal> {
         None => {
             return Err(Refusal::Error(VideoError::NotVideo {
                 path: path.to_path_buf(),
-                reason: super::not_video_reason(head),
+                reason: super::source::not_video_reason(head),
             }))
         }
     }
