@@ -26,6 +26,16 @@ pub enum BenchCmd {
     /// are made with ffmpeg first (x264 High with B-frames, like phone videos).
     #[command(after_help = "Example:\n  gagavatar bench video --threads 2 --runs 5")]
     Video(VideoBench),
+    /// The per-frame drive (expression -> FLAME -> splat -> renderer -> RGB) on the CPU or a
+    /// GPU: time per stage, frames/s (median over the frames), GPU memory.
+    #[command(
+        after_help = "The avatar is the avatar-like benchmark scene at the model's size \
+(5023 + 2 x 296^2 Gaussians for release), prepared and uploaded once and not timed; renderer \
+weights are seeded random ones unless --ckpt is given. GAGAVATAR_GPU_TUNE=key=value,... tries \
+other kernel tile sizes (docs/gpu.md).\n\nExample:\n  gagavatar bench drive --device gpu\n  \
+gagavatar bench drive --device cpu --threads 2 --frames 10"
+    )]
+    Drive(crate::cmd_bench_drive::DriveBench),
 }
 
 #[derive(Debug, Args)]
@@ -91,6 +101,7 @@ pub fn run(cmd: BenchCmd) -> Result<()> {
         BenchCmd::Splat(args) => bench_splat(args),
         BenchCmd::Model(args) => bench_model(args),
         BenchCmd::Video(args) => bench_video(args),
+        BenchCmd::Drive(args) => crate::cmd_bench_drive::bench_drive(args),
     }
 }
 

@@ -28,6 +28,8 @@ pub struct DemoArgs {
     /// Output folder.
     #[arg(short, long, default_value = "demo_out")]
     pub output: PathBuf,
+    #[command(flatten)]
+    pub device: crate::device_args::DeviceArgs,
 }
 
 /// `assets/demo` from the working directory, else beside the source tree this binary was built
@@ -76,6 +78,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     eprintln!("1/3 reenactment (driver | result)");
     crate::cmd_reenact::run(ReenactArgs {
         src: src(),
+        device: a.device,
         driver: assets.join("driver.json"),
         output: a.output.join("reenact.mp4"),
         side_by_side: true,
@@ -89,6 +92,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     eprintln!("2/3 orbit");
     crate::cmd_orbit::run_orbit(OrbitArgs {
         src: src(),
+        device: a.device,
         output: a.output.join("orbit.mp4"),
         expression: ExpressionArgs::default(),
         yaw: 35.0,

@@ -25,6 +25,8 @@ gagavatar reenact ... --driver tracked/video1 --driver-video video1.mp4 -o out.m
 pub struct ReenactArgs {
     #[command(flatten)]
     pub src: SourceArgs,
+    #[command(flatten)]
+    pub device: crate::device_args::DeviceArgs,
     /// Driving sequence: a release tracked folder or a JSON sequence.
     #[arg(long)]
     pub driver: PathBuf,
@@ -116,6 +118,7 @@ pub fn run(a: ReenactArgs) -> Result<()> {
     }
     let fps = a.fps.unwrap_or(driver.fps);
     let mut session = Session::open(&a.src)?;
+    session.use_device(&a.device)?;
     let size = session.image_size();
     let width = if show_driver { 2 * size } else { size };
     let jobs: Vec<FrameJob> = driver.frames[a.start..end]

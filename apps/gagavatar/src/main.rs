@@ -3,6 +3,7 @@
 
 mod animate;
 mod cmd_bench;
+mod cmd_bench_drive;
 mod cmd_demo;
 mod cmd_flame;
 mod cmd_model;
@@ -12,6 +13,7 @@ mod cmd_splat;
 mod cmd_synth;
 mod cmd_train;
 mod cmd_video;
+mod device_args;
 
 use clap::{Parser, Subcommand};
 

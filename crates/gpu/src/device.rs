@@ -36,6 +36,8 @@ pub struct Gpu {
     /// only: no kernel uses them yet (see docs/gpu.md).
     pub cooperative_matrices: Vec<wgpu::CooperativeMatrixProperties>,
     pub(crate) kernels: crate::kernel::KernelCache,
+    /// Bytes of the buffers created through [`Gpu::buffer`] and its siblings.
+    pub(crate) allocated: std::sync::atomic::AtomicU64,
 }
 
 impl fmt::Debug for Gpu {
@@ -160,6 +162,7 @@ impl Gpu {
             adapter_features,
             cooperative_matrices,
             kernels: Default::default(),
+            allocated: Default::default(),
         })
     }
 
@@ -169,6 +172,12 @@ impl Gpu {
 
     pub fn describe(&self) -> String {
         describe(&self.info)
+    }
+
+    /// Bytes of GPU buffers this process created through this device (weights, activations,
+    /// scratch; not the driver's own memory).
+    pub fn allocated_bytes(&self) -> u64 {
+        self.allocated.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     pub fn has_timestamps(&self) -> bool {

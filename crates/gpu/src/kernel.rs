@@ -143,9 +143,11 @@ impl Gpu {
 
     /// A storage buffer of `bytes` bytes (at least 4), zeroed.
     pub fn buffer(&self, label: &str, bytes: u64) -> wgpu::Buffer {
+        let size = bytes.max(4).next_multiple_of(4);
+        self.count(size);
         self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
-            size: bytes.max(4).next_multiple_of(4),
+            size,
             usage: wgpu::BufferUsages::STORAGE
                 | wgpu::BufferUsages::COPY_DST
                 | wgpu::BufferUsages::COPY_SRC
@@ -160,6 +162,7 @@ impl Gpu {
         if bytes.is_empty() {
             return self.buffer(label, 4);
         }
+        self.count(bytes.len() as u64);
         self.device
             .create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),
@@ -172,12 +175,18 @@ impl Gpu {
 
     /// A uniform buffer of parameters (see [`Params`]).
     pub fn uniform(&self, label: &str, p: &Params) -> wgpu::Buffer {
+        self.count(4 * p.words().len() as u64);
         self.device
             .create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),
                 contents: bytemuck::cast_slice(&p.words()),
                 usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             })
+    }
+
+    fn count(&self, bytes: u64) {
+        self.allocated
+            .fetch_add(bytes, std::sync::atomic::Ordering::Relaxed);
     }
 
     /// Binds whole buffers, in order, to a kernel.
@@ -203,6 +212,17 @@ impl Gpu {
                 views.len()
             )));
         }
+        let max = self.limits.max_storage_buffer_binding_size as u64;
+        for v in views {
+            let size = v.size.map_or(v.buffer.size() - v.offset, |s| s.get());
+            if size > max {
+                return Err(GpuError::Unsupported(format!(
+                    "kernel {}: a {size}-byte buffer is over the device's binding limit of {max} \
+                     bytes",
+                    k.name
+                )));
+            }
+        }
         let entries: Vec<wgpu::BindGroupEntry> = views
             .iter()
             .enumerate()
@@ -211,11 +231,16 @@ impl Gpu {
                 resource: wgpu::BindingResource::Buffer(v.clone()),
             })
             .collect();
-        Ok(self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some(&k.name),
             layout: &k.layout,
             entries: &entries,
-        }))
+        });
+        if let Some(err) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Device(format!("binding kernel {}: {err}", k.name)));
+        }
+        Ok(group)
     }
 
     /// Copies a buffer's first `bytes` bytes back to the host (waits for the GPU).

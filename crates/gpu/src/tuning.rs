@@ -33,14 +33,11 @@ impl ConvTile {
             && self.tn > 0
             && self.bm.is_multiple_of(self.tm)
             && self.bn.is_multiple_of(self.tn)
-            && self.threads() <= max_threads
-            && self.threads() >= 1
-            && (self.bm * self.bk).is_multiple_of(self.threads())
-            && (self.bn * self.bk).is_multiple_of(self.threads());
+            && self.threads() <= max_threads;
         if !ok {
             return Err(GpuError::Unsupported(format!(
-                "{name} tile {self:?}: bm, bn must be multiples of tm, tn; (bm/tm)(bn/tn) threads \
-                 (at most {max_threads}) must divide bm*bk and bn*bk"
+                "{name} tile {self:?}: bm, bn must be multiples of tm, tn, with at most \
+                 {max_threads} threads (bm/tm)(bn/tn)"
             )));
         }
         let shared = 4 * self.bk * (self.bm + self.bn);
@@ -84,10 +81,10 @@ impl Default for Tuning {
             pairs_per_gaussian: 4.0,
             conv: ConvTile {
                 bm: 32,
-                bn: 64,
+                bn: 128,
                 bk: 16,
-                tm: 4,
-                tn: 4,
+                tm: 8,
+                tn: 8,
             },
             conv_small: ConvTile {
                 bm: 64,
