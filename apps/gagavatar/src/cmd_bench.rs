@@ -36,6 +36,11 @@ other kernel tile sizes (docs/gpu.md).\n\nExample:\n  gagavatar bench drive --de
 gagavatar bench drive --device cpu --threads 2 --frames 10"
     )]
     Drive(crate::cmd_bench_drive::DriveBench),
+    /// Face perception: tracking-mode landmarks per video frame, detection, the 256x256 matte.
+    #[command(
+        after_help = "Frames are images (a folder of them, or files), used in order as a video. Each frame is\ncopied right before it is timed, as a decoder would have just written it.\n\nExample:\n  ffmpeg -i clip.mp4 frames/%04d.png\n  gagavatar bench face frames --threads 2 --runs 3"
+    )]
+    Face(FaceBench),
 }
 
 #[derive(Debug, Args)]
@@ -52,6 +57,22 @@ pub struct VideoBench {
     /// Folder for the test clips (default: a temporary folder, removed afterwards).
     #[arg(long)]
     dir: Option<std::path::PathBuf>,
+}
+
+#[derive(Debug, Args)]
+pub struct FaceBench {
+    /// A folder of frames (sorted by name) or image files.
+    #[arg(required = true)]
+    frames: Vec<std::path::PathBuf>,
+    /// Passes over the frames (the first is a warm-up); medians over all timed frames.
+    #[arg(long, default_value_t = 3)]
+    runs: usize,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Use at most this many frames.
+    #[arg(long, default_value_t = 120)]
+    max_frames: usize,
 }
 
 #[derive(Debug, Args)]
@@ -102,6 +123,7 @@ pub fn run(cmd: BenchCmd) -> Result<()> {
         BenchCmd::Model(args) => bench_model(args),
         BenchCmd::Video(args) => bench_video(args),
         BenchCmd::Drive(args) => crate::cmd_bench_drive::bench_drive(args),
+        BenchCmd::Face(args) => bench_face(args),
     }
 }
 
@@ -498,4 +520,131 @@ impl Drop for RemoveDir {
     fn drop(&mut self) {
         let _ = std::fs::remove_dir_all(&self.0);
     }
+}
+
+fn face_frames(args: &FaceBench) -> Result<Vec<image::RgbImage>> {
+    let mut paths = Vec::new();
+    for p in &args.frames {
+        if p.is_dir() {
+            let mut v: Vec<_> = std::fs::read_dir(p)
+                .with_context(|| format!("reading {}", p.display()))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.is_file())
+                .collect();
+            v.sort();
+            paths.extend(v);
+        } else {
+            paths.push(p.clone());
+        }
+    }
+    paths.truncate(args.max_frames);
+    anyhow::ensure!(!paths.is_empty(), "no frames given");
+    let opts = gagavatar_formats::image::DecodeOptions::default();
+    paths
+        .iter()
+        .map(|p| Ok(gagavatar_formats::image::read_image(p, &opts)?.rgb))
+        .collect()
+}
+
+/// Median and minimum of per-frame times, in ms.
+fn stats(v: &mut [f64]) -> (f64, f64) {
+    let m = median(v);
+    (m, v[0])
+}
+
+fn bench_face(args: FaceBench) -> Result<()> {
+    use gagavatar_face::detection::{DetectorModel, FaceDetector};
+    use gagavatar_face::face_mesh::{FaceMesh, FaceTracker};
+    use gagavatar_face::matte::SelfieSegmenter;
+
+    let threads = args.threads.unwrap_or_else(num_cpus);
+    gagavatar_face::pool::set_threads(threads);
+    let frames = face_frames(&args)?;
+    let runs = args.runs.max(2);
+    let (fw, fh) = (frames[0].width(), frames[0].height());
+    let mesh = FaceMesh::new()?;
+    let full = FaceDetector::new(DetectorModel::FullRange)?;
+    let seg = SelfieSegmenter::new()?;
+    let total = (runs * frames.len() * 6) as u64;
+    let pb = ProgressBar::new(total);
+    pb.set_style(ProgressStyle::with_template(
+        "{msg} [{bar:30}] {pos}/{len} ETA {eta}",
+    )?);
+
+    // Each measurement: `runs` passes over the frames, the first one untimed.
+    let measure =
+        |name: &str, f: &mut dyn FnMut(&image::RgbImage) -> Result<()>| -> Result<Vec<f64>> {
+            pb.set_message(name.to_owned());
+            let mut times = Vec::new();
+            for run in 0..runs {
+                for frame in &frames {
+                    let frame = frame.clone();
+                    let t0 = Instant::now();
+                    f(&frame)?;
+                    let dt = t0.elapsed().as_secs_f64() * 1e3;
+                    if run > 0 {
+                        times.push(dt);
+                    }
+                    pb.inc(1);
+                }
+            }
+            Ok(times)
+        };
+
+    let mut tracker = FaceTracker::with_models(mesh.clone());
+    let mut detected = 0usize;
+    let mut found = 0usize;
+    let mut tracking = measure("tracking", &mut |f| {
+        let was = tracker.is_tracking();
+        let face = tracker.process(f)?;
+        detected += !was as usize;
+        found += face.is_some() as usize;
+        Ok(())
+    })?;
+    let mut short = measure("short range", &mut |f| {
+        mesh.detector.detect(f)?;
+        Ok(())
+    })?;
+    let mut full_t = measure("full range", &mut |f| {
+        full.detect(f)?;
+        Ok(())
+    })?;
+    let mut stat = measure("static mesh", &mut |f| {
+        mesh.process(f, 1)?;
+        Ok(())
+    })?;
+    let mut matte = measure("matte 256", &mut |f| {
+        seg.mask256(f)?;
+        Ok(())
+    })?;
+    let mut matte_full = measure("matte", &mut |f| {
+        seg.matte(f)?;
+        Ok(())
+    })?;
+    pb.finish_and_clear();
+    let rows = [
+        (
+            "tracking frame (478 landmarks, detector skipped while tracked)",
+            &mut tracking,
+        ),
+        ("detection, short range (128)", &mut short),
+        ("detection, full range (192)", &mut full_t),
+        ("photo: short-range detection + 478 landmarks", &mut stat),
+        ("matte 256x256 (sampling + network)", &mut matte),
+        ("matte at frame size (+ resize back)", &mut matte_full),
+    ];
+    println!(
+        "face, {} frames of {fw}x{fh}, {threads} threads, {} timed passes:",
+        frames.len(),
+        runs - 1
+    );
+    for (name, v) in rows {
+        let (m, lo) = stats(v);
+        println!("  {name}: median {m:.2} ms (min {lo:.2})");
+    }
+    println!(
+        "  tracking: face in {found} of {} frames, detector ran on {detected}",
+        runs * frames.len()
+    );
+    Ok(())
 }

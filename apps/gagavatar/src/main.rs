@@ -5,6 +5,7 @@ mod animate;
 mod cmd_bench;
 mod cmd_bench_drive;
 mod cmd_demo;
+mod cmd_face;
 mod cmd_flame;
 mod cmd_model;
 mod cmd_orbit;
@@ -54,6 +55,8 @@ enum Command {
     /// Read videos as every command does: metadata, frames.
     #[command(subcommand)]
     Video(cmd_video::VideoCmd),
+    /// Find faces in a photo: boxes, keypoints, 478 landmarks, and the person matte.
+    Face(cmd_face::FaceArgs),
     /// Benchmarks of the hot paths on this machine.
     #[command(subcommand)]
     Bench(cmd_bench::BenchCmd),
@@ -124,6 +127,7 @@ fn main() {
         Command::Orbit(args) => cmd_orbit::run_orbit(args),
         Command::ExportPly(args) => cmd_orbit::run_export_ply(args),
         Command::Video(cmd) => cmd_video::run(cmd),
+        Command::Face(args) => cmd_face::run(args),
         Command::Bench(cmd) => cmd_bench::run(cmd),
         Command::SynthData(args) => cmd_synth::run(args),
         Command::Train(args) => cmd_train::run_train(args),
