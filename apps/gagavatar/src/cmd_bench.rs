@@ -32,7 +32,7 @@ pub enum BenchCmd {
         after_help = "The avatar is the avatar-like benchmark scene at the model's size \
 (5023 + 2 x 296^2 Gaussians for release), prepared and uploaded once and not timed; renderer \
 weights are seeded random ones unless --ckpt is given. GAGAVATAR_GPU_TUNE=key=value,... tries \
-other kernel tile sizes (docs/gpu.md).\n\nExample:\n  gagavatar bench drive --device gpu\n  \
+other kernel tile sizes (crates/gpu/README.md).\n\nExample:\n  gagavatar bench drive --device gpu\n  \
 gagavatar bench drive --device cpu --threads 2 --frames 10"
     )]
     Drive(crate::cmd_bench_drive::DriveBench),

@@ -10,8 +10,8 @@ use candle_core::{DType, Device, Tensor};
 use clap::Args;
 use gagavatar_flame::{synthesize, FlameConfig, FlameIdentity, FlameModel};
 use gagavatar_gpu::drive::{GpuDrive, STAGES};
-use gagavatar_gpu::wgpu as wgpu_features;
 use gagavatar_gpu::flame::FrameCodes;
+use gagavatar_gpu::wgpu as wgpu_features;
 use gagavatar_net::model::Avatar;
 use gagavatar_net::style_unet::{Noise, StyleUNet};
 use gagavatar_net::ModelConfig;
@@ -110,8 +110,8 @@ fn codes(rng: &mut Rng, n_exp: usize, frame: usize) -> FrameCodes {
 }
 
 pub fn bench_drive(a: DriveBench) -> Result<()> {
-    let cfg = ModelConfig::preset(&a.preset)
-        .with_context(|| format!("unknown preset `{}`", a.preset))?;
+    let cfg =
+        ModelConfig::preset(&a.preset).with_context(|| format!("unknown preset `{}`", a.preset))?;
     let regime = match a.regime {
         RegimeArg::Small => Regime::Small,
         RegimeArg::Large => Regime::Large,
@@ -126,21 +126,30 @@ pub fn bench_drive(a: DriveBench) -> Result<()> {
     let t0 = Instant::now();
     let renderer = renderer(&cfg, a.ckpt.as_deref())?;
     let avatar = bench_avatar(&cfg, regime)?;
-    let flame = FlameModel::new(&synthesize(1), FlameConfig::default(), &Device::Cpu, DType::F32)?;
+    let flame = FlameModel::new(
+        &synthesize(1),
+        FlameConfig::default(),
+        &Device::Cpu,
+        DType::F32,
+    )?;
     let identity = flame.identity(&Tensor::zeros((1, 300), DType::F32, &Device::Cpu)?)?;
     let tm = Camera::look_at_origin_matrix(9.0, std::f64::consts::PI + 0.1, 0.05);
     eprintln!("prepared in {:.1} s", t0.elapsed().as_secs_f64());
     let mut rng = Rng::new(7);
     let n_gauss = cfg.n_gaussians();
     match gpu {
-        Some(gpu) => bench_gpu(&a, &cfg, gpu, &renderer, &avatar, &flame, &identity, &tm, &mut rng, n_gauss),
+        Some(gpu) => bench_gpu(
+            &a, &cfg, gpu, &renderer, &avatar, &flame, &identity, &tm, &mut rng, n_gauss,
+        ),
         None => {
             let pool = rayon::ThreadPoolBuilder::new()
                 .num_threads(threads)
                 .build()
                 .context("building the thread pool")?;
             pool.install(|| {
-                bench_cpu(&a, &cfg, &renderer, &avatar, &flame, &identity, &tm, &mut rng, threads)
+                bench_cpu(
+                    &a, &cfg, &renderer, &avatar, &flame, &identity, &tm, &mut rng, threads,
+                )
             })
         }
     }
@@ -201,7 +210,7 @@ fn bench_gpu(
         }
     }
     let g = drive.gpu();
-    // For the tuning notes (docs/gpu.md): what faster kernels could use on this adapter.
+    // For the tuning notes (crates/gpu/README.md): what faster kernels could use on this adapter.
     let has = |f: wgpu_features::Features| g.adapter_features.contains(f);
     let coop: Vec<String> = g
         .cooperative_matrices
@@ -335,7 +344,10 @@ fn bench_cpu(
         cfg.n_gaussians(),
         a.regime
     );
-    for (k, name) in ["FLAME", "splat", "renderer + RGB", "frame"].iter().enumerate() {
+    for (k, name) in ["FLAME", "splat", "renderer + RGB", "frame"]
+        .iter()
+        .enumerate()
+    {
         println!("    {name:<30} {:>9.1} ms", median(&mut times[k]));
     }
     println!("  {:.2} frames/s", 1e3 / median(&mut times[3]));

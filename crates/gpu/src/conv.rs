@@ -155,7 +155,14 @@ pub fn plan(tuning: &Tuning, cin: usize, cout: usize, h: usize, w: usize, k: usi
 
 impl Ops<'_> {
     /// Floats of split-K scratch a layer needs (0 when it is not split).
-    pub fn split_need(tuning: &Tuning, cin: usize, cout: usize, h: usize, w: usize, k: usize) -> usize {
+    pub fn split_need(
+        tuning: &Tuning,
+        cin: usize,
+        cout: usize,
+        h: usize,
+        w: usize,
+        k: usize,
+    ) -> usize {
         let p = plan(tuning, cin, cout, h, w, k);
         if p.split > 0 {
             p.slices as usize * cout * h * w
@@ -166,7 +173,10 @@ impl Ops<'_> {
 
     pub fn conv(&self, c: &Conv) -> Result<Vec<Step>> {
         if c.k != 1 && c.k != 3 {
-            return Err(GpuError::Unsupported(format!("{}x{} convolution", c.k, c.k)));
+            return Err(GpuError::Unsupported(format!(
+                "{}x{} convolution",
+                c.k, c.k
+            )));
         }
         if c.noise.is_some() && c.residual.is_some() {
             return Err(GpuError::Unsupported(
@@ -228,9 +238,7 @@ impl Ops<'_> {
             c.cout.div_ceil(t.bm as usize) as u32,
         ];
         if p.split == 0 {
-            let k = self
-                .gpu
-                .kernel("conv", CONV, &consts(0), &binds)?;
+            let k = self.gpu.kernel("conv", CONV, &consts(0), &binds)?;
             let u = self.gpu.uniform("conv", &params(1));
             let g = self.gpu.bind(
                 &k,
@@ -283,7 +291,14 @@ impl Ops<'_> {
             .kernel("conv_finish", CONV_FINISH, &finish_consts, &fb)?;
         let gf = self.gpu.bind(
             &kf,
-            &[&u, self.split_scratch, self.vecs, aux.buf, sft_buf, c.out.buf],
+            &[
+                &u,
+                self.split_scratch,
+                self.vecs,
+                aux.buf,
+                sft_buf,
+                c.out.buf,
+            ],
         )?;
         Ok(vec![
             Step::new(k, g, Grid::Fixed([grid_xy[0], grid_xy[1], p.slices])),
@@ -292,7 +307,15 @@ impl Ops<'_> {
     }
 
     /// x2 bilinear upsampling (`up`) or x0.5 (2x2 mean) of `[c, h, w]`.
-    pub fn resize(&self, up: bool, c: usize, h: usize, w: usize, input: At, out: At) -> Result<Step> {
+    pub fn resize(
+        &self,
+        up: bool,
+        c: usize,
+        h: usize,
+        w: usize,
+        input: At,
+        out: At,
+    ) -> Result<Step> {
         let k = self.gpu.kernel(
             if up { "upsample" } else { "downsample" },
             RESIZE,
@@ -314,7 +337,13 @@ impl Ops<'_> {
     }
 
     /// `out = a + b` over `n` values (whole buffers).
-    pub fn add(&self, n: usize, a: &wgpu::Buffer, b: &wgpu::Buffer, out: &wgpu::Buffer) -> Result<Step> {
+    pub fn add(
+        &self,
+        n: usize,
+        a: &wgpu::Buffer,
+        b: &wgpu::Buffer,
+        out: &wgpu::Buffer,
+    ) -> Result<Step> {
         let k = self.gpu.kernel(
             "add",
             ADD,
@@ -466,7 +495,11 @@ mod tests {
                 for px in 0..wd {
                     let mut acc = 0f64;
                     for ci in 0..cin {
-                        let s = if o.in_scale { vecs[100 + ci] as f64 } else { 1.0 };
+                        let s = if o.in_scale {
+                            vecs[100 + ci] as f64
+                        } else {
+                            1.0
+                        };
                         for ky in 0..k {
                             for kx in 0..k {
                                 let yy = py as isize + ky as isize - pad;
@@ -526,11 +559,46 @@ mod tests {
             sigmoid: false,
         };
         let cases = [
-            (3, 5, 5, 7, 3, Opts { bias: true, ..Opts::default() }),
+            (
+                3,
+                5,
+                5,
+                7,
+                3,
+                Opts {
+                    bias: true,
+                    ..Opts::default()
+                },
+            ),
             (16, 8, 16, 16, 1, all),
             (9, 33, 12, 10, 3, all),
-            (20, 4, 40, 40, 3, Opts { lrelu: true, residual: true, bias: true, ..Opts::default() }),
-            (6, 3, 8, 8, 1, Opts { residual: true, sigmoid: true, in_scale: true, bias: true, ..Opts::default() }),
+            (
+                20,
+                4,
+                40,
+                40,
+                3,
+                Opts {
+                    lrelu: true,
+                    residual: true,
+                    bias: true,
+                    ..Opts::default()
+                },
+            ),
+            (
+                6,
+                3,
+                8,
+                8,
+                1,
+                Opts {
+                    residual: true,
+                    sigmoid: true,
+                    in_scale: true,
+                    bias: true,
+                    ..Opts::default()
+                },
+            ),
             (64, 24, 4, 4, 3, all),
         ];
         for tune in ["", "conv_split_k=48", "conv_bm=16,conv_bn=32,conv_bk=8,conv_tm=4,conv_tn=2,conv_small_bm=32,conv_small_bn=8,conv_small_tm=2,conv_small_tn=2"] {
@@ -615,15 +683,22 @@ mod tests {
             let x = rand(&mut rng, c * h * w, -1.0, 1.0);
             let xt = Tensor::from_slice(&x, (1, c, h, w), &Device::Cpu).unwrap();
             for up in [true, false] {
-                let want: Vec<f32> = if up { upsample2x(&xt) } else { downsample2x(&xt) }
-                    .unwrap()
-                    .flatten_all()
-                    .unwrap()
-                    .to_vec1()
-                    .unwrap();
+                let want: Vec<f32> = if up {
+                    upsample2x(&xt)
+                } else {
+                    downsample2x(&xt)
+                }
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap();
                 let xb = g.buffer_with("x", &x);
                 let yb = g.buffer("y", 4 * want.len() as u64);
-                run(g, &[ops.resize(up, c, h, w, At::new(&xb), At::new(&yb)).unwrap()]);
+                run(
+                    g,
+                    &[ops.resize(up, c, h, w, At::new(&xb), At::new(&yb)).unwrap()],
+                );
                 let got = g.read_f32(&yb, want.len()).unwrap();
                 assert_close(&format!("resize up={up} {c}x{h}x{w}"), &want, &got, 1e-6);
             }
@@ -651,18 +726,47 @@ mod tests {
                     (if act { s.max(0.2 * s) } else { s }) as f32
                 })
                 .collect();
-            let (xb, wb, bb) = (g.buffer_with("x", &x), g.buffer_with("w", &w), g.buffer_with("b", &b));
+            let (xb, wb, bb) = (
+                g.buffer_with("x", &x),
+                g.buffer_with("w", &w),
+                g.buffer_with("b", &b),
+            );
             let yb = g.buffer("y", 4 * (n_out + 1) as u64);
-            let ops = Ops { gpu: g, tuning: &t, vecs: &d, dummy: &d, split_scratch: &d };
-            run(g, &[ops.linear(n_in, n_out, At::off(&xb, 2), &wb, &bb, act, At::off(&yb, 1)).unwrap()]);
+            let ops = Ops {
+                gpu: g,
+                tuning: &t,
+                vecs: &d,
+                dummy: &d,
+                split_scratch: &d,
+            };
+            run(
+                g,
+                &[ops
+                    .linear(n_in, n_out, At::off(&xb, 2), &wb, &bb, act, At::off(&yb, 1))
+                    .unwrap()],
+            );
             let got = g.read_f32(&yb, n_out + 1).unwrap();
-            assert_close(&format!("linear {n_in}->{n_out}"), &want, &got[1..], LAYER_TOL);
+            assert_close(
+                &format!("linear {n_in}->{n_out}"),
+                &want,
+                &got[1..],
+                LAYER_TOL,
+            );
         }
         let x = rand(&mut rng, 300, -2.0, 2.0);
         let ms = x.iter().map(|&v| (v as f64).powi(2)).sum::<f64>() / 300.0;
-        let want: Vec<f32> = x.iter().map(|&v| (v as f64 / (ms + 1e-8).sqrt()) as f32).collect();
+        let want: Vec<f32> = x
+            .iter()
+            .map(|&v| (v as f64 / (ms + 1e-8).sqrt()) as f32)
+            .collect();
         let (xb, yb) = (g.buffer_with("x", &x), g.buffer("y", 1200));
-        let ops = Ops { gpu: g, tuning: &t, vecs: &d, dummy: &d, split_scratch: &d };
+        let ops = Ops {
+            gpu: g,
+            tuning: &t,
+            vecs: &d,
+            dummy: &d,
+            split_scratch: &d,
+        };
         run(g, &[ops.rms_norm(300, &xb, &yb).unwrap()]);
         assert_close("rms norm", &want, &g.read_f32(&yb, 300).unwrap(), 1e-6);
         let (cin, cout) = (130, 9);
@@ -679,8 +783,19 @@ mod tests {
             .collect();
         let vb = g.buffer_with("v", &vecs);
         let eb = g.buffer_with("e", &energy);
-        let ops = Ops { gpu: g, tuning: &t, vecs: &vb, dummy: &d, split_scratch: &d };
-        run(g, &[ops.demod(cin, cout, &eb, 10, (10 + cin) as u32, 1.4).unwrap()]);
+        let ops = Ops {
+            gpu: g,
+            tuning: &t,
+            vecs: &vb,
+            dummy: &d,
+            split_scratch: &d,
+        };
+        run(
+            g,
+            &[ops
+                .demod(cin, cout, &eb, 10, (10 + cin) as u32, 1.4)
+                .unwrap()],
+        );
         let got = g.read_f32(&vb, 10 + cin + cout).unwrap();
         assert_close("demodulation", &want, &got[10 + cin..], LAYER_TOL);
     }

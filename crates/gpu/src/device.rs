@@ -33,7 +33,7 @@ pub struct Gpu {
     /// Everything the adapter offers (reported by the bench, for the tuning notes).
     pub adapter_features: wgpu::Features,
     /// Cooperative-matrix (tensor core) shapes the adapter reports; empty when none. Reported
-    /// only: no kernel uses them yet (see docs/gpu.md).
+    /// only: no kernel uses them yet (see crates/gpu/README.md).
     pub cooperative_matrices: Vec<wgpu::CooperativeMatrixProperties>,
     pub(crate) kernels: crate::kernel::KernelCache,
     /// Bytes of the buffers created through [`Gpu::buffer`] and its siblings.

@@ -150,7 +150,15 @@ impl GpuFlame {
                 kv.clone(),
                 gpu.bind(
                     &kv,
-                    &[&pv, &v_shaped, &dirs, &coeffs, &weights, &transforms, &vertices],
+                    &[
+                        &pv,
+                        &v_shaped,
+                        &dirs,
+                        &coeffs,
+                        &weights,
+                        &transforms,
+                        &vertices,
+                    ],
                 )?,
                 Grid::Fixed([groups(nv, 64), 1, 1]),
             ),
@@ -213,12 +221,11 @@ mod tests {
     fn vertices_match_the_cpu_forward() {
         let Some(g) = gpu() else { return };
         let asset = synthesize(3);
-        let model = FlameModel::new(&asset, FlameConfig::default(), &Device::Cpu, DType::F32)
-            .unwrap();
+        let model =
+            FlameModel::new(&asset, FlameConfig::default(), &Device::Cpu, DType::F32).unwrap();
         let mut rng = Rng::new(11);
-        let mut randn = |n: usize, s: f64| -> Vec<f32> {
-            (0..n).map(|_| (rng.normal() * s) as f32).collect()
-        };
+        let mut randn =
+            |n: usize, s: f64| -> Vec<f32> { (0..n).map(|_| (rng.normal() * s) as f32).collect() };
         let shape = Tensor::from_vec(randn(300, 1.0), (1, 300), &Device::Cpu).unwrap();
         let identity = model.identity(&shape).unwrap();
         let gf = GpuFlame::new(g, &model, &identity).unwrap();
@@ -231,7 +238,12 @@ mod tests {
             };
             let t = |v: &[f32]| Tensor::from_slice(v, (1, v.len()), &Device::Cpu).unwrap();
             let want: Vec<f32> = model
-                .forward_with_identity(&identity, &t(&codes.expression), &t(&codes.pose), &t(&codes.eye))
+                .forward_with_identity(
+                    &identity,
+                    &t(&codes.expression),
+                    &t(&codes.pose),
+                    &t(&codes.eye),
+                )
                 .unwrap()
                 .vertices
                 .flatten_all()

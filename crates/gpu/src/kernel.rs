@@ -238,7 +238,10 @@ impl Gpu {
             entries: &entries,
         });
         if let Some(err) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Device(format!("binding kernel {}: {err}", k.name)));
+            return Err(GpuError::Device(format!(
+                "binding kernel {}: {err}",
+                k.name
+            )));
         }
         Ok(group)
     }

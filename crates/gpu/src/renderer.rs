@@ -336,7 +336,12 @@ impl GpuRenderer {
             need(cond_scale[k].cin, cond_scale[k].cout, r, 3);
             need(cond_shift[k].cin, cond_shift[k].cout, r, 3);
             need(style_convs[2 * k].cin, style_convs[2 * k].cout, r, 3);
-            need(style_convs[2 * k + 1].cin, style_convs[2 * k + 1].cout, r, 3);
+            need(
+                style_convs[2 * k + 1].cin,
+                style_convs[2 * k + 1].cout,
+                r,
+                3,
+            );
             need(to_rgbs[k].cin, 3, r, 1);
         }
         need(c4, c4, 4, 3);
@@ -420,9 +425,23 @@ impl GpuRenderer {
             f = out;
         }
         let feat = act("final_conv", u(4), 4);
-        unet.extend(conv_lrelu(&final_conv, 4, At::new(&f), At::new(&feat), None)?);
+        unet.extend(conv_lrelu(
+            &final_conv,
+            4,
+            At::new(&f),
+            At::new(&feat),
+            None,
+        )?);
         let code = gpu.buffer("style code", 4 * sd as u64);
-        unet.push(ops.linear(fl_in, sd, At::new(&feat), &fl_w, &fl_b, false, At::new(&code))?);
+        unet.push(ops.linear(
+            fl_in,
+            sd,
+            At::new(&feat),
+            &fl_w,
+            &fl_b,
+            false,
+            At::new(&code),
+        )?);
         // U-Net decoder and the SFT maps (scale channels, then shift channels).
         let mut sfts = Vec::with_capacity(levels);
         let mut prev = feat.clone();
@@ -452,12 +471,7 @@ impl GpuRenderer {
             unet.extend(conv_lrelu(&cond0[k], r, At::new(&out), At::new(&c0), None)?);
             let d = dc(r);
             let sft = act("sft", 2 * d, r);
-            unet.extend(plain(
-                &cond_scale[k],
-                r,
-                At::new(&c0),
-                At::off(&sft, 0),
-            )?);
+            unet.extend(plain(&cond_scale[k], r, At::new(&c0), At::off(&sft, 0))?);
             unet.extend(plain(
                 &cond_shift[k],
                 r,
@@ -623,7 +637,9 @@ impl GpuRenderer {
 
     /// Noise maps the decoder uses, with their sides.
     pub fn noise_sides(&self) -> Vec<usize> {
-        (0..self.noise_offsets.len()).map(noise_resolution).collect()
+        (0..self.noise_offsets.len())
+            .map(noise_resolution)
+            .collect()
     }
 
     pub fn unet_steps(&self) -> &[Step] {

@@ -1,7 +1,7 @@
 //! The kernels' tuning knobs (tile sizes, items per thread, sort digit width). Every value is
 //! substituted into the WGSL source when a pipeline is built, so trying another value needs no
 //! rebuild of the binary: set `GAGAVATAR_GPU_TUNE`, e.g.
-//! `GAGAVATAR_GPU_TUNE=conv_bn=128,conv_tn=8,radix_bits=5`. docs/gpu.md lists what to try.
+//! `GAGAVATAR_GPU_TUNE=conv_bn=128,conv_tn=8,radix_bits=5`. crates/gpu/README.md lists what to try.
 
 use crate::error::{GpuError, Result};
 

@@ -1050,14 +1050,19 @@ mod tests {
         let data = init_weights(&cfg, 3).unwrap();
         let mut map = HashMap::new();
         for (k, (shape, v)) in &data {
-            map.insert(k.clone(), Tensor::from_vec(v.clone(), shape.clone(), &Device::Cpu).unwrap());
+            map.insert(
+                k.clone(),
+                Tensor::from_vec(v.clone(), shape.clone(), &Device::Cpu).unwrap(),
+            );
         }
         let model = build_model(&cfg, map, &Device::Cpu).unwrap();
         let named = model.renderer.named_weights();
         let mut seen = std::collections::BTreeSet::new();
         for (k, t) in &named {
             let full = format!("upsampler.{k}");
-            let (_, want) = data.get(&full).unwrap_or_else(|| panic!("{full} is not a key"));
+            let (_, want) = data
+                .get(&full)
+                .unwrap_or_else(|| panic!("{full} is not a key"));
             let got: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
             assert_eq!(&got, want, "{full}");
             assert!(seen.insert(full.clone()), "{full} listed twice");
