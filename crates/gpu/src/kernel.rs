@@ -212,7 +212,7 @@ impl Gpu {
                 views.len()
             )));
         }
-        let max = self.limits.max_storage_buffer_binding_size as u64;
+        let max = self.limits.max_storage_buffer_binding_size;
         for v in views {
             let size = v.size.map_or(v.buffer.size() - v.offset, |s| s.get());
             if size > max {

@@ -201,8 +201,10 @@ mod tests {
         let mut t = Tuning::default();
         t.conv.tm = 3;
         assert!(t.check(&lim).is_err());
-        let mut t = Tuning::default();
-        t.radix_bits = 9;
+        let t = Tuning {
+            radix_bits: 9,
+            ..Default::default()
+        };
         assert!(t.check(&lim).is_err());
     }
 }

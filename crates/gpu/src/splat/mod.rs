@@ -442,11 +442,13 @@ mod tests {
         let (scene, cam) = edge_scene(7, 4);
         let bg = vec![0f32; 4];
         let want = cpu_render(&scene, &bg, &cam);
-        let mut t = Tuning::default();
-        t.pairs_per_gaussian = 0.01;
-        t.radix_bits = 3;
-        t.radix_items = 2;
-        t.scan_items = 1;
+        let t = Tuning {
+            pairs_per_gaussian: 0.01,
+            radix_bits: 3,
+            radix_items: 2,
+            scan_items: 1,
+            ..Default::default()
+        };
         let got = gpu_render(g, &scene, &bg, &cam, &t);
         assert_close("grown pairs", &want, &got, COARSE_TOL);
     }
