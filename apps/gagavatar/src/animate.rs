@@ -63,6 +63,8 @@ pub struct Timings {
     pub splat: Duration,
     pub renderer: Duration,
     pub encode: Duration,
+    /// The whole drive (FLAME, splatting, renderer, read-back) when it runs on a GPU.
+    pub gpu: Duration,
     pub frames: usize,
 }
 
@@ -71,6 +73,20 @@ impl Timings {
     pub fn report(&self, total: Duration) -> String {
         let ms = |d: Duration| 1e3 * d.as_secs_f64();
         let per = |d: Duration| ms(d) / self.frames.max(1) as f64;
+        if self.gpu > Duration::ZERO {
+            return format!(
+                "time: load {:.0} ms, reconstruct {:.0} ms; per frame: GPU drive (FLAME, \
+splatting, renderer, read-back) {:.1} ms, video encoding {:.1} ms; {} frames, total wall {:.1} s \
+({:.2} frames/s)",
+                ms(self.load),
+                ms(self.reconstruct),
+                per(self.gpu),
+                per(self.encode),
+                self.frames,
+                total.as_secs_f64(),
+                self.frames as f64 / total.as_secs_f64().max(1e-9),
+            );
+        }
         format!(
             "time: load {:.0} ms, reconstruct {:.0} ms; per frame: FLAME {:.1} ms, splatting {:.1} ms, \
 neural renderer {:.1} ms, video encoding {:.1} ms; {} frames, total wall {:.1} s ({:.2} frames/s)",
@@ -96,6 +112,8 @@ pub struct Session {
     identity: FlameIdentity,
     pub noise: Noise,
     pub timings: Timings,
+    /// The drive on a GPU, when [`Session::use_device`] found one.
+    gpu: Option<gagavatar_gpu::drive::GpuDrive>,
 }
 
 /// Reads the source record: JSON, or a frame of a release pickle.
@@ -314,7 +332,29 @@ impl Session {
                 reconstruct,
                 ..Default::default()
             },
+            gpu: None,
         })
+    }
+
+    /// Renders frames on a GPU from now on when `device` asks for one (and one is found):
+    /// uploads the avatar, FLAME and the renderer once.
+    pub fn use_device(&mut self, device: &crate::device_args::DeviceArgs) -> Result<()> {
+        let Some(gpu) = device.open()? else {
+            return Ok(());
+        };
+        let t0 = Instant::now();
+        let tuning = gagavatar_gpu::Tuning::from_env()?;
+        self.gpu = Some(gagavatar_gpu::drive::GpuDrive::from_model(
+            gpu,
+            &tuning,
+            &self.model,
+            &self.avatar,
+            &self.flame,
+            &self.identity,
+            self.noise,
+        )?);
+        self.timings.load += t0.elapsed();
+        Ok(())
     }
 
     pub fn image_size(&self) -> usize {
@@ -353,6 +393,18 @@ impl Session {
         names: &[String],
         transforms: &[[[f64; 4]; 3]],
     ) -> Result<Vec<Vec<u8>>> {
+        if let Some(drive) = &mut self.gpu {
+            let t0 = Instant::now();
+            let mut out = Vec::with_capacity(records.len());
+            for ((r, name), tm) in records.iter().zip(names).zip(transforms) {
+                let codes = gagavatar_gpu::flame::FrameCodes::from_record(r, &self.flame)
+                    .with_context(|| format!("driver frame `{name}`"))?;
+                out.push(drive.frame_rgb8(&codes, tm)?);
+            }
+            self.timings.gpu += t0.elapsed();
+            self.timings.frames += records.len();
+            return Ok(out);
+        }
         let verts = self.vertices(records, names)?;
         let tm = transforms_tensor(transforms)?;
         let t0 = Instant::now();

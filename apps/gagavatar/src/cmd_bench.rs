@@ -27,6 +27,16 @@ pub enum BenchCmd {
     /// are made with ffmpeg first (x264 High with B-frames, like phone videos).
     #[command(after_help = "Example:\n  gagavatar bench video --threads 2 --runs 5")]
     Video(VideoBench),
+    /// The per-frame drive (expression -> FLAME -> splat -> renderer -> RGB) on the CPU or a
+    /// GPU: time per stage, frames/s (median over the frames), GPU memory.
+    #[command(
+        after_help = "The avatar is the avatar-like benchmark scene at the model's size \
+(5023 + 2 x 296^2 Gaussians for release), prepared and uploaded once and not timed; renderer \
+weights are seeded random ones unless --ckpt is given. GAGAVATAR_GPU_TUNE=key=value,... tries \
+other kernel tile sizes (crates/gpu/README.md).\n\nExample:\n  gagavatar bench drive --device gpu\n  \
+gagavatar bench drive --device cpu --threads 2 --frames 10"
+    )]
+    Drive(crate::cmd_bench_drive::DriveBench),
     /// Face perception: tracking-mode landmarks per video frame, detection, the 256x256 matte.
     #[command(
         after_help = "Frames are images (a folder of them, or files), used in order as a video. Each frame is\ncopied right before it is timed, as a decoder would have just written it.\n\nExample:\n  ffmpeg -i clip.mp4 frames/%04d.png\n  gagavatar bench face frames --threads 2 --runs 3"
@@ -171,6 +181,7 @@ pub fn run(cmd: BenchCmd) -> Result<()> {
         BenchCmd::Splat(args) => bench_splat(args),
         BenchCmd::Model(args) => bench_model(args),
         BenchCmd::Video(args) => bench_video(args),
+        BenchCmd::Drive(args) => crate::cmd_bench_drive::bench_drive(args),
         BenchCmd::Face(args) => bench_face(args),
         BenchCmd::Eval(args) => bench_eval(args),
         BenchCmd::Track(args) => bench_track(args),

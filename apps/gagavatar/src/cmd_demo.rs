@@ -35,6 +35,8 @@ pub struct DemoArgs {
     /// Do not draw the "AI-generated" watermark on the videos.
     #[arg(long)]
     pub no_watermark: bool,
+    #[command(flatten)]
+    pub device: crate::device_args::DeviceArgs,
 }
 
 /// What the demo runs: the reenactment, the orbit and the `.ply` export, all from `assets`.
@@ -52,6 +54,7 @@ fn steps(a: &DemoArgs, assets: &Path) -> (ReenactArgs, OrbitArgs, ExportPlyArgs)
     };
     let reenact = ReenactArgs {
         src: src(),
+        device: a.device,
         driver: Some(assets.join("driver.json")),
         output: a.output.join("reenact.mp4"),
         side_by_side: true,
@@ -64,6 +67,7 @@ fn steps(a: &DemoArgs, assets: &Path) -> (ReenactArgs, OrbitArgs, ExportPlyArgs)
     };
     let orbit = OrbitArgs {
         src: src(),
+        device: a.device,
         output: a.output.join("orbit.mp4"),
         expression: ExpressionArgs::default(),
         yaw: 35.0,

@@ -24,6 +24,8 @@ Example:\n  gagavatar orbit --ckpt GAGAvatar.pt --flame FLAME_with_eye.pt --sour
 pub struct OrbitArgs {
     #[command(flatten)]
     pub src: SourceArgs,
+    #[command(flatten)]
+    pub device: crate::device_args::DeviceArgs,
     /// Output: .mp4, .gif, or a folder of PNGs.
     #[arg(short, long)]
     pub output: PathBuf,
@@ -94,6 +96,7 @@ pub fn run_orbit(a: OrbitArgs) -> Result<()> {
         bail!("--yaw and --pitch must be finite angles within +-90 degrees");
     }
     let mut session = Session::open(&a.src)?;
+    session.use_device(&a.device)?;
     let expr = a.expression.record(&session.source)?;
     let base = record_transform(&session.source, "the source record")?;
     let transforms: Vec<_> = (0..a.frames)

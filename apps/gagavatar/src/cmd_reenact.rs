@@ -34,6 +34,8 @@ gagavatar reenact ... --source me.png --source-record me.json --driver tracked/v
 pub struct ReenactArgs {
     #[command(flatten)]
     pub src: SourceArgs,
+    #[command(flatten)]
+    pub device: crate::device_args::DeviceArgs,
     /// Driving sequence: a release tracked folder or a JSON sequence, or a raw video (any
     /// video file or a folder of images; tracked now, or found in the tracking cache). Default:
     /// the --driver-video, tracked.
@@ -157,6 +159,7 @@ pub fn run(a: ReenactArgs) -> Result<()> {
     }
     let fps = a.fps.unwrap_or(driver.fps);
     let mut session = Session::open_resolved(&a.src, source)?;
+    session.use_device(&a.device)?;
     let size = session.image_size();
     let width = if show_driver { 2 * size } else { size };
     let jobs: Vec<FrameJob> = driver.frames[a.start..end]

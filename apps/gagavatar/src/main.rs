@@ -3,6 +3,7 @@
 
 mod animate;
 mod cmd_bench;
+mod cmd_bench_drive;
 mod cmd_demo;
 mod cmd_eval;
 mod cmd_face;
@@ -15,6 +16,7 @@ mod cmd_synth;
 mod cmd_track;
 mod cmd_train;
 mod cmd_video;
+mod device_args;
 mod tracking;
 
 use clap::{Parser, Subcommand};

@@ -295,6 +295,23 @@ impl FlameModel {
         Ok(dims[0])
     }
 
+    /// `[n_exp + 36, V * 3]`: the expression blendshapes, then the pose correctives (for other
+    /// backends of the forward pass, e.g. the GPU drive path).
+    pub fn exp_pose_dirs(&self) -> &Tensor {
+        &self.exp_pose_dirs
+    }
+
+    /// `[n_exp, 15]`: the joint regressor applied to each expression blendshape; `None` when
+    /// the model uses no expression components.
+    pub fn j_exp_dirs(&self) -> Option<&Tensor> {
+        self.j_exp_dirs.as_ref()
+    }
+
+    /// `[V, 5]` linear-blend-skinning weights.
+    pub fn skinning_weights(&self) -> &Tensor {
+        &self.weights
+    }
+
     /// The full 15-value pose `[global, neck = 0, jaw, eye, eye]`, `[B, 15]`.
     pub fn full_pose(&self, pose: &Tensor, eye: &Tensor) -> Result<Tensor> {
         let b = pose.dim(0)?;

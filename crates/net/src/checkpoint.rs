@@ -366,7 +366,18 @@ pub type WeightData = BTreeMap<String, (Vec<usize>, Vec<f32>)>;
 
 /// Seeded random weights for every key of `cfg`, with realistic magnitudes.
 pub fn init_weights(cfg: &ModelConfig, seed: u64) -> Result<WeightData> {
-    let keys = expected_keys(cfg)?;
+    init_weights_where(cfg, seed, &|_| true)
+}
+
+/// [`init_weights`] for the keys `keep` accepts only (each key's values depend on the seed and
+/// the key alone, so they are the same as in the full set).
+pub fn init_weights_where(
+    cfg: &ModelConfig,
+    seed: u64,
+    keep: &(dyn Fn(&str) -> bool + Sync),
+) -> Result<WeightData> {
+    let mut keys = expected_keys(cfg)?;
+    keys.retain(|k, _| keep(k));
     Ok(keys
         .into_par_iter()
         .map(|(k, shape)| {

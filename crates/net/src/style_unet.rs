@@ -28,6 +28,21 @@ const SLOPE: f64 = 0.2;
 /// Added to the squared norms in the style-code normalisation and the demodulation.
 const EPS: f64 = 1e-8;
 
+/// Named weights as [`StyleUNet::named_weights`] lists them: `prefix.weight`, `prefix.bias`.
+fn push_conv(out: &mut Vec<(String, Tensor)>, prefix: &str, c: &Conv2d) {
+    out.push((format!("{prefix}.weight"), c.weight.clone()));
+    if let Some(b) = &c.bias {
+        out.push((format!("{prefix}.bias"), b.clone()));
+    }
+}
+
+fn push_linear(out: &mut Vec<(String, Tensor)>, prefix: &str, l: &Linear) {
+    out.push((format!("{prefix}.weight"), l.weight().clone()));
+    if let Some(b) = l.bias() {
+        out.push((format!("{prefix}.bias"), b.clone()));
+    }
+}
+
 /// Which noise the decoder's StyleConvs inject.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Noise {
@@ -82,6 +97,12 @@ impl ResBlock {
         })
     }
 
+    fn named_weights(&self, prefix: &str, out: &mut Vec<(String, Tensor)>) {
+        push_conv(out, &format!("{prefix}.conv1"), &self.conv1);
+        push_conv(out, &format!("{prefix}.conv2"), &self.conv2);
+        push_conv(out, &format!("{prefix}.skip"), &self.skip);
+    }
+
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let h = fused::lrelu(self.conv1.forward(x)?)?;
         if self.up {
@@ -111,6 +132,11 @@ impl ConditionBranch {
             conv0: Conv2d::k3(vb.pp("0"), ch, ch)?,
             conv2: Conv2d::k3(vb.pp("2"), ch, out)?,
         })
+    }
+
+    fn named_weights(&self, prefix: &str, out: &mut Vec<(String, Tensor)>) {
+        push_conv(out, &format!("{prefix}.0"), &self.conv0);
+        push_conv(out, &format!("{prefix}.2"), &self.conv2);
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
@@ -180,6 +206,11 @@ impl ModulatedConv {
             cout,
             k,
         })
+    }
+
+    fn named_weights(&self, prefix: &str, out: &mut Vec<(String, Tensor)>) {
+        out.push((format!("{prefix}.weight"), self.weight.clone()));
+        push_linear(out, &format!("{prefix}.modulation"), &self.modulation);
     }
 
     fn energy(weight: &Tensor) -> Result<Tensor> {
@@ -324,6 +355,13 @@ impl StyleConv {
         })
     }
 
+    fn named_weights(&self, prefix: &str, out: &mut Vec<(String, Tensor)>) {
+        self.modulated_conv
+            .named_weights(&format!("{prefix}.modulated_conv"), out);
+        out.push((format!("{prefix}.weight"), self.noise_weight.clone()));
+        out.push((format!("{prefix}.bias"), self.bias.clone()));
+    }
+
     /// `noise` [1 or B, 1, H', W'] at the output resolution.
     pub fn forward(&self, x: &Tensor, latent: &Tensor, noise: &Tensor) -> Result<Tensor> {
         let up;
@@ -361,6 +399,12 @@ impl ToRgb {
             )?,
             bias: vb.get((1, 3, 1, 1), "bias")?.reshape(3)?,
         })
+    }
+
+    fn named_weights(&self, prefix: &str, out: &mut Vec<(String, Tensor)>) {
+        self.modulated_conv
+            .named_weights(&format!("{prefix}.modulated_conv"), out);
+        out.push((format!("{prefix}.bias"), self.bias.clone()));
     }
 
     pub fn forward(&self, x: &Tensor, latent: &Tensor, skip: Option<&Tensor>) -> Result<Tensor> {
@@ -455,6 +499,24 @@ impl StyleGan2Decoder {
                 Tensor::randn(0f32, 1f32, (batch, 1, r, r), like.device())?.to_dtype(like.dtype())
             }
             Noise::Seeded(seed) => seeded_noise(seed, i, batch, noise_resolution(i), like),
+        }
+    }
+
+    fn named_weights(&self, out: &mut Vec<(String, Tensor)>) {
+        for (i, l) in self.style_mlp.iter().enumerate() {
+            push_linear(out, &format!("style_mlp.{}", 2 * i + 1), l);
+        }
+        out.push(("constant_input.weight".into(), self.constant_input.clone()));
+        self.style_conv1.named_weights("style_conv1", out);
+        self.to_rgb1.named_weights("to_rgb1", out);
+        for (i, c) in self.style_convs.iter().enumerate() {
+            c.named_weights(&format!("style_convs.{i}"), out);
+        }
+        for (k, c) in self.to_rgbs.iter().enumerate() {
+            c.named_weights(&format!("to_rgbs.{k}"), out);
+        }
+        for (i, t) in self.noises.iter().enumerate() {
+            out.push((format!("noises.noise{i}"), t.clone()));
         }
     }
 
@@ -655,6 +717,36 @@ impl StyleUNet {
 
     pub fn decoder(&self) -> &StyleGan2Decoder {
         &self.decoder
+    }
+
+    /// Every weight the forward pass uses, under its key relative to `upsampler.` (the
+    /// checkpoint's key without that prefix), for other backends (the GPU drive path). Values
+    /// are the checkpoint's; shapes are the module's (the modulated convolutions' weights are
+    /// `[cout, cin, k, k]` and the StyleConv biases `[cout]`). The unused `toRGB.k` are left out.
+    pub fn named_weights(&self) -> Vec<(String, Tensor)> {
+        let mut out = Vec::new();
+        push_conv(&mut out, "conv_body_first", &self.conv_body_first);
+        for (k, b) in self.conv_body_down.iter().enumerate() {
+            b.named_weights(&format!("conv_body_down.{k}"), &mut out);
+        }
+        push_conv(&mut out, "final_conv", &self.final_conv);
+        push_linear(&mut out, "final_linear", &self.final_linear);
+        for (k, b) in self.conv_body_up.iter().enumerate() {
+            b.named_weights(&format!("conv_body_up.{k}"), &mut out);
+        }
+        for (k, b) in self.condition_scale.iter().enumerate() {
+            b.named_weights(&format!("condition_scale.{k}"), &mut out);
+        }
+        for (k, b) in self.condition_shift.iter().enumerate() {
+            b.named_weights(&format!("condition_shift.{k}"), &mut out);
+        }
+        let mut dec = Vec::new();
+        self.decoder.named_weights(&mut dec);
+        out.extend(
+            dec.into_iter()
+                .map(|(k, t)| (format!("stylegan_decoder.{k}"), t)),
+        );
+        out
     }
 }
 
@@ -941,4 +1033,47 @@ pub fn downsample2x(x: &Tensor) -> Result<Tensor> {
         bail!("downsample2x needs even sizes, got {h}x{w}");
     }
     resize(x, h / 2, w / 2, ResizeMode::HalfPixel)
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::checkpoint::{build_model, init_weights};
+    use crate::ModelConfig;
+    use candle_core::{Device, Tensor};
+    use std::collections::HashMap;
+
+    /// `named_weights` lists every renderer key of the checkpoint but the unused `toRGB.k`,
+    /// each with the checkpoint's values.
+    #[test]
+    fn named_weights_are_the_checkpoint_values() {
+        let cfg = ModelConfig::tiny();
+        let data = init_weights(&cfg, 3).unwrap();
+        let mut map = HashMap::new();
+        for (k, (shape, v)) in &data {
+            map.insert(
+                k.clone(),
+                Tensor::from_vec(v.clone(), shape.clone(), &Device::Cpu).unwrap(),
+            );
+        }
+        let model = build_model(&cfg, map, &Device::Cpu).unwrap();
+        let named = model.renderer.named_weights();
+        let mut seen = std::collections::BTreeSet::new();
+        for (k, t) in &named {
+            let full = format!("upsampler.{k}");
+            let (_, want) = data
+                .get(&full)
+                .unwrap_or_else(|| panic!("{full} is not a key"));
+            let got: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+            assert_eq!(&got, want, "{full}");
+            assert!(seen.insert(full.clone()), "{full} listed twice");
+        }
+        for k in data.keys() {
+            if let Some(rest) = k.strip_prefix("upsampler.") {
+                assert!(
+                    seen.contains(k) || rest.starts_with("toRGB."),
+                    "{k} is missing from named_weights"
+                );
+            }
+        }
+    }
 }

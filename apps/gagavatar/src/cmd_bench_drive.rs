@@ -1,0 +1,355 @@
+//! `gagavatar bench drive`: the per-frame drive (expression -> FLAME vertices -> 32-channel
+//! splat -> neural renderer -> RGB) on the CPU or a GPU, the avatar prepared once and not
+//! timed. Prints the time per stage and frames/s (the median over the frames).
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use candle_core::{DType, Device, Tensor};
+use clap::Args;
+use gagavatar_flame::{synthesize, FlameConfig, FlameIdentity, FlameModel};
+use gagavatar_gpu::drive::{GpuDrive, STAGES};
+use gagavatar_gpu::flame::FrameCodes;
+use gagavatar_gpu::wgpu as wgpu_features;
+use gagavatar_net::model::Avatar;
+use gagavatar_net::style_unet::{Noise, StyleUNet};
+use gagavatar_net::ModelConfig;
+use gagavatar_splat::testscene::{avatar_scene, Regime, Rng};
+use gagavatar_splat::{splat, Camera, Gaussians};
+
+use crate::device_args::DeviceArgs;
+
+#[derive(Debug, Args)]
+pub struct DriveBench {
+    #[command(flatten)]
+    device: DeviceArgs,
+    /// Architecture: release, small or tiny.
+    #[arg(long, default_value = "release")]
+    preset: String,
+    /// Renderer weights to use instead of seeded random ones (`upsampler.*` of a checkpoint).
+    #[arg(long)]
+    ckpt: Option<std::path::PathBuf>,
+    /// Timed frames (the median is reported); default 300 on a GPU, 10 on the CPU.
+    #[arg(long)]
+    frames: Option<usize>,
+    /// Gaussian sizes of the avatar-like scene: small (world scales ~0.005) or large (~0.025).
+    #[arg(long, value_enum, default_value = "small")]
+    regime: RegimeArg,
+    /// CPU worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+}
+
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum RegimeArg {
+    Small,
+    Large,
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    v[v.len() / 2]
+}
+
+/// An avatar of the model's size: the benchmark scene's two lifted planes, its head points'
+/// attributes for the expression Gaussians (whose positions FLAME gives each frame).
+fn bench_avatar(cfg: &ModelConfig, regime: Regime) -> Result<Avatar> {
+    let nl = cfg.lifted_points();
+    let nv = cfg.n_vertices;
+    let (scene, _) = avatar_scene(cfg.plane_size(), nv, cfg.color_dim, regime, 1);
+    let dev = Device::Cpu;
+    let head_first = |v: &[f32], k: usize| -> Result<Tensor> {
+        let mut out = v[nl * k..].to_vec();
+        out.extend_from_slice(&v[..nl * k]);
+        Ok(Tensor::from_vec(out, (1, nl + nv, k), &dev)?)
+    };
+    Ok(Avatar {
+        lifted_xyz: Tensor::from_slice(&scene.means[..3 * nl], (1, nl, 3), &dev)?,
+        colors: head_first(&scene.features, cfg.color_dim)?,
+        opacities: head_first(&scene.opacities, 1)?,
+        scales: head_first(&scene.scales, 3)?,
+        rotations: head_first(&scene.rotations, 4)?,
+    })
+}
+
+fn renderer(cfg: &ModelConfig, ckpt: Option<&std::path::Path>) -> Result<StyleUNet> {
+    let dev = Device::Cpu;
+    let map: std::collections::HashMap<String, Tensor> = match ckpt {
+        Some(p) => gagavatar_net::checkpoint::read_weights(p)
+            .with_context(|| format!("reading {}", p.display()))?
+            .tensors
+            .into_iter()
+            .filter(|(k, _)| k.starts_with("upsampler."))
+            .collect(),
+        None => {
+            let w = gagavatar_net::checkpoint::init_weights_where(cfg, 0, &|k| {
+                k.starts_with("upsampler.")
+            })?;
+            let mut m = std::collections::HashMap::new();
+            for (k, (s, v)) in w {
+                m.insert(k, Tensor::from_vec(v, s, &dev)?);
+            }
+            m
+        }
+    };
+    let vb = candle_nn::VarBuilder::from_tensors(map, DType::F32, &dev);
+    Ok(StyleUNet::new(cfg, vb.pp("upsampler"))?)
+}
+
+/// Expression codes that change every frame (a slow random walk), so nothing is cached.
+fn codes(rng: &mut Rng, n_exp: usize, frame: usize) -> FrameCodes {
+    let t = frame as f32 * 0.05;
+    FrameCodes {
+        expression: (0..n_exp)
+            .map(|i| (0.8 * (t + i as f32).sin()) + 0.05 * rng.normal() as f32)
+            .collect(),
+        pose: [0.0, 0.0, 0.0, 0.1 * t.sin().abs(), 0.0, 0.0],
+        eye: [0.02 * t.cos(), 0.0, 0.0, 0.02 * t.cos(), 0.0, 0.0],
+    }
+}
+
+pub fn bench_drive(a: DriveBench) -> Result<()> {
+    let cfg =
+        ModelConfig::preset(&a.preset).with_context(|| format!("unknown preset `{}`", a.preset))?;
+    let regime = match a.regime {
+        RegimeArg::Small => Regime::Small,
+        RegimeArg::Large => Regime::Large,
+    };
+    let threads = a.threads.unwrap_or_else(|| {
+        std::thread::available_parallelism()
+            .map(|n| n.get())
+            .unwrap_or(1)
+    });
+    std::env::set_var("RAYON_NUM_THREADS", threads.to_string());
+    let gpu = a.device.open()?;
+    let t0 = Instant::now();
+    let renderer = renderer(&cfg, a.ckpt.as_deref())?;
+    let avatar = bench_avatar(&cfg, regime)?;
+    let flame = FlameModel::new(
+        &synthesize(1),
+        FlameConfig::default(),
+        &Device::Cpu,
+        DType::F32,
+    )?;
+    let identity = flame.identity(&Tensor::zeros((1, 300), DType::F32, &Device::Cpu)?)?;
+    let tm = Camera::look_at_origin_matrix(9.0, std::f64::consts::PI + 0.1, 0.05);
+    eprintln!("prepared in {:.1} s", t0.elapsed().as_secs_f64());
+    let mut rng = Rng::new(7);
+    let n_gauss = cfg.n_gaussians();
+    match gpu {
+        Some(gpu) => bench_gpu(
+            &a, &cfg, gpu, &renderer, &avatar, &flame, &identity, &tm, &mut rng, n_gauss,
+        ),
+        None => {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .context("building the thread pool")?;
+            pool.install(|| {
+                bench_cpu(
+                    &a, &cfg, &renderer, &avatar, &flame, &identity, &tm, &mut rng, threads,
+                )
+            })
+        }
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn bench_gpu(
+    a: &DriveBench,
+    cfg: &ModelConfig,
+    gpu: Arc<gagavatar_gpu::Gpu>,
+    renderer: &StyleUNet,
+    avatar: &Avatar,
+    flame: &FlameModel,
+    identity: &FlameIdentity,
+    tm: &[[f64; 4]; 3],
+    rng: &mut Rng,
+    n_gauss: usize,
+) -> Result<()> {
+    let frames = a.frames.unwrap_or(300).max(1);
+    let emulated = gpu.is_cpu();
+    let desc = gpu.describe();
+    let tuning = gagavatar_gpu::Tuning::from_env()?;
+    let t0 = Instant::now();
+    let mut drive = GpuDrive::new(
+        gpu,
+        &tuning,
+        cfg,
+        renderer,
+        avatar,
+        flame,
+        identity,
+        Noise::Fixed,
+    )?;
+    let upload = t0.elapsed();
+    // Warm-up: first use of each pipeline, and the pair buffers reach their size.
+    let t0 = Instant::now();
+    drive.frame(&codes(rng, flame.config.n_exp, 0), tm)?;
+    let first = t0.elapsed();
+    let bar = crate::animate::progress(frames, "bench drive (GPU)");
+    let mut wall = Vec::with_capacity(frames);
+    for f in 0..frames {
+        crate::check_interrupt()?;
+        let c = codes(rng, flame.config.n_exp, f + 1);
+        let t = Instant::now();
+        drive.frame(&c, tm)?;
+        wall.push(1e3 * t.elapsed().as_secs_f64());
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let profiled = 10.min(frames).max(1);
+    let mut per_stage: Vec<Vec<f64>> = vec![Vec::new(); STAGES.len()];
+    let mut timestamps = false;
+    for f in 0..profiled {
+        let st = drive.profile(&codes(rng, flame.config.n_exp, f), tm)?;
+        timestamps = st.timestamps;
+        for (k, v) in st.ms.iter().enumerate() {
+            per_stage[k].push(*v);
+        }
+    }
+    let g = drive.gpu();
+    // For the tuning notes (crates/gpu/README.md): what faster kernels could use on this adapter.
+    let has = |f: wgpu_features::Features| g.adapter_features.contains(f);
+    let coop: Vec<String> = g
+        .cooperative_matrices
+        .iter()
+        .map(|c| {
+            format!(
+                "{}x{}x{} {:?}->{:?}",
+                c.m_size, c.n_size, c.k_size, c.ab_type, c.cr_type
+            )
+        })
+        .collect();
+    println!(
+        "adapter: shader-f16 {}, subgroups {}, timestamps {}, cooperative matrices [{}]",
+        has(wgpu_features::Features::SHADER_F16),
+        has(wgpu_features::Features::SUBGROUP),
+        has(wgpu_features::Features::TIMESTAMP_QUERY),
+        coop.join(", ")
+    );
+    println!(
+        "drive on the GPU: {desc}{}",
+        if emulated {
+            " -- CPU-EMULATED (lavapipe/llvmpipe): these numbers say nothing about a real GPU"
+        } else {
+            ""
+        }
+    );
+    println!(
+        "  {} {}x{}, {n_gauss} Gaussians ({:?} regime), {} channels; upload {:.0} ms, first frame {:.0} ms",
+        cfg.name,
+        cfg.image_size,
+        cfg.image_size,
+        a.regime,
+        cfg.color_dim,
+        1e3 * upload.as_secs_f64(),
+        1e3 * first.as_secs_f64(),
+    );
+    println!(
+        "  per stage (median of {profiled} frames, {}):",
+        if timestamps {
+            "GPU timestamps"
+        } else {
+            "each stage submitted and waited for alone (no timestamp queries on this adapter)"
+        }
+    );
+    let mut device_total = 0.0;
+    for (k, name) in STAGES.iter().enumerate() {
+        let m = median(&mut per_stage[k]);
+        device_total += m;
+        println!("    {name:<30} {m:>9.2} ms");
+    }
+    println!("    {:<30} {device_total:>9.2} ms", "sum");
+    // (median sorts, so the first and last are the fastest and slowest frames)
+    let med = median(&mut wall);
+    println!(
+        "  frame (codes in, RGB read back): median {med:.2} ms over {frames} frames (min {:.2}, max {:.2}) = {:.1} frames/s",
+        wall.first().copied().unwrap_or(f64::NAN),
+        wall.last().copied().unwrap_or(f64::NAN),
+        1e3 / med
+    );
+    println!(
+        "  GPU buffers allocated: {:.0} MiB; (tile, Gaussian) pair capacity {}",
+        g.allocated_bytes() as f64 / (1 << 20) as f64,
+        drive.pair_capacity()
+    );
+    Ok(())
+}
+
+#[allow(clippy::too_many_arguments)]
+fn bench_cpu(
+    a: &DriveBench,
+    cfg: &ModelConfig,
+    renderer: &StyleUNet,
+    avatar: &Avatar,
+    flame: &FlameModel,
+    identity: &FlameIdentity,
+    tm: &[[f64; 4]; 3],
+    rng: &mut Rng,
+    threads: usize,
+) -> Result<()> {
+    let frames = a.frames.unwrap_or(10).max(1);
+    let dev = Device::Cpu;
+    let tmt = Tensor::from_vec(
+        tm.iter().flatten().map(|&x| x as f32).collect::<Vec<_>>(),
+        (1, 3, 4),
+        &dev,
+    )?;
+    let cams = gagavatar_net::model::cameras(&tmt, cfg.image_size)?;
+    let bg = Tensor::zeros(cfg.color_dim, DType::F32, &dev)?;
+    let t2 = |v: &[f32]| Tensor::from_slice(v, (1, v.len()), &dev);
+    let mut times: Vec<Vec<f64>> = vec![Vec::new(); 4];
+    let bar = crate::animate::progress(frames + 1, "bench drive (CPU)");
+    for f in 0..=frames {
+        crate::check_interrupt()?;
+        let c = codes(rng, flame.config.n_exp, f);
+        let t = Instant::now();
+        let verts = flame
+            .forward_with_identity(identity, &t2(&c.expression)?, &t2(&c.pose)?, &t2(&c.eye)?)?
+            .vertices;
+        let t_flame = t.elapsed();
+        let means = Tensor::cat(&[&verts, &avatar.lifted_xyz], 1)?;
+        let coarse = splat(
+            &Gaussians {
+                means: &means,
+                features: &avatar.colors,
+                opacities: &avatar.opacities,
+                scales: &avatar.scales,
+                rotations: &avatar.rotations,
+            },
+            &bg,
+            &cams,
+        )?
+        .image;
+        let t_splat = t.elapsed();
+        let fine = renderer.forward(&coarse, Noise::Fixed)?;
+        let _rgb = crate::animate::to_rgb8(&fine)?;
+        let t_all = t.elapsed();
+        if f > 0 {
+            times[0].push(1e3 * t_flame.as_secs_f64());
+            times[1].push(1e3 * (t_splat - t_flame).as_secs_f64());
+            times[2].push(1e3 * (t_all - t_splat).as_secs_f64());
+            times[3].push(1e3 * t_all.as_secs_f64());
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    println!(
+        "drive on the CPU ({threads} threads): {} {}x{}, {} Gaussians ({:?} regime), median of {frames} frames after a warm-up",
+        cfg.name,
+        cfg.image_size,
+        cfg.image_size,
+        cfg.n_gaussians(),
+        a.regime
+    );
+    for (k, name) in ["FLAME", "splat", "renderer + RGB", "frame"]
+        .iter()
+        .enumerate()
+    {
+        println!("    {name:<30} {:>9.1} ms", median(&mut times[k]));
+    }
+    println!("  {:.2} frames/s", 1e3 / median(&mut times[3]));
+    Ok(())
+}

@@ -1,0 +1,330 @@
+//! `--device` end to end on seeded `tiny` weights: `reenact` and `orbit` on the GPU give the
+//! CPU's frames, `bench drive` prints its per-stage report on both devices, and a missing
+//! adapter is one clear line (`--device gpu`) or a fallback to the CPU (`--device auto`).
+//!
+//! The GPU here is whatever Vulkan device exists; in CI that is Mesa's lavapipe, which
+//! `.ci/run` installs, setting GAGAVATAR_REQUIRE_GPU_TESTS=1 so that no device is a failure.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::OnceLock;
+
+const BIN: &str = env!("CARGO_BIN_EXE_gagavatar");
+/// Frames are 8-bit: the GPU's and the CPU's f32 images (within 1e-6 at this size, see
+/// crates/gpu) can round to neighbouring levels where a value sits on a half step.
+const RGB8_TOL: i32 = 1;
+/// An adapter name no device has, to simulate a machine without one.
+const NO_SUCH_ADAPTER: &str = "no-such-adapter-4c0e511";
+
+/// Mesa's window-system code prints a line on stderr when XDG_RUNTIME_DIR is unset (nothing
+/// here opens a window); a private one keeps stderr to the program's own lines.
+fn runtime_dir() -> &'static PathBuf {
+    static D: OnceLock<PathBuf> = OnceLock::new();
+    D.get_or_init(|| {
+        let d = std::env::temp_dir().join(format!("gagavatar_gpu_xdg_{}", std::process::id()));
+        std::fs::create_dir_all(&d).unwrap();
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            std::fs::set_permissions(&d, std::fs::Permissions::from_mode(0o700)).unwrap();
+        }
+        d
+    })
+}
+
+fn run(args: &[&str], env: &[(&str, &str)]) -> Output {
+    let mut c = Command::new(BIN);
+    c.args(args);
+    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
+        c.env("XDG_RUNTIME_DIR", runtime_dir());
+    }
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    c.output().expect("running the gagavatar binary")
+}
+
+fn ok(args: &[&str]) -> Output {
+    let out = run(args, &[]);
+    assert!(
+        out.status.success(),
+        "gagavatar {args:?} failed:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+/// Whether a GPU device exists; without one the GPU tests are skipped, unless CI requires
+/// them.
+fn have_gpu(out: &Output) -> bool {
+    if out.status.success() {
+        return true;
+    }
+    let err = String::from_utf8_lossy(&out.stderr);
+    if err.contains("no GPU adapter found")
+        && !std::env::var("GAGAVATAR_REQUIRE_GPU_TESTS").is_ok_and(|v| v != "0")
+    {
+        eprintln!("skipping GPU test: {err}");
+        return false;
+    }
+    panic!("gagavatar --device gpu failed:\n{err}");
+}
+
+struct Fixture {
+    dir: PathBuf,
+}
+
+impl Fixture {
+    fn s(&self, name: &str) -> String {
+        self.dir.join(name).display().to_string()
+    }
+}
+
+fn record(exp: f64, yaw: f64) -> serde_json::Value {
+    let (s, c) = yaw.sin_cos();
+    serde_json::json!({
+        "shapecode": [0.2, -0.1, 0.3],
+        "expcode": (0..10).map(|k| exp * ((k as f64) + 1.0).sin()).collect::<Vec<_>>(),
+        "posecode": [0, 0, 0, 0.05, 0, 0],
+        "eyecode": [0.01, 0, 0, 0, 0.02, 0],
+        "transform_matrix": [[-c, 0.0, s, 0.0], [0.0, 1.0, 0.0, 0.0], [-s, 0.0, -c, 9.0]],
+    })
+}
+
+fn fixture() -> &'static Fixture {
+    static F: OnceLock<Fixture> = OnceLock::new();
+    F.get_or_init(|| {
+        let dir = std::env::temp_dir().join(format!("gagavatar_gpu_cli_{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let f = Fixture { dir };
+        ok(&["flame", "synth", "-o", &f.s("flame.safetensors")]);
+        ok(&[
+            "init-weights",
+            "--preset",
+            "tiny",
+            "--seed",
+            "9",
+            "-o",
+            &f.s("tiny.safetensors"),
+        ]);
+        let img = image::RgbImage::from_fn(64, 64, |x, y| {
+            image::Rgb([(x * 4) as u8, (y * 4) as u8, ((x + y) * 2) as u8])
+        });
+        img.save(f.dir.join("src.png")).unwrap();
+        std::fs::write(f.dir.join("src.json"), record(0.0, 0.0).to_string()).unwrap();
+        let frames: Vec<_> = (0..4)
+            .map(|i| record(0.5 * i as f64, 0.15 * i as f64))
+            .collect();
+        std::fs::write(
+            f.dir.join("driver.json"),
+            serde_json::json!({"fps": 10, "frames": frames}).to_string(),
+        )
+        .unwrap();
+        f
+    })
+}
+
+fn avatar_cmd(f: &Fixture, sub: &str, extra: &[&str]) -> Vec<String> {
+    let mut v = vec![sub.to_string()];
+    for (k, name) in [
+        ("--ckpt", "tiny.safetensors"),
+        ("--flame", "flame.safetensors"),
+        ("--source", "src.png"),
+        ("--source-record", "src.json"),
+    ] {
+        v.push(k.into());
+        v.push(f.s(name));
+    }
+    v.extend(extra.iter().map(|s| s.to_string()));
+    v
+}
+
+fn strs(v: &[String]) -> Vec<&str> {
+    v.iter().map(String::as_str).collect()
+}
+
+fn pngs(dir: &Path) -> Vec<(String, image::RgbImage)> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    names
+        .into_iter()
+        .map(|n| {
+            let img = image::open(dir.join(&n)).unwrap().to_rgb8();
+            (n, img)
+        })
+        .collect()
+}
+
+/// The same frames, to within one 8-bit level.
+fn assert_same_frames(what: &str, cpu: &Path, gpu: &Path) {
+    let (a, b) = (pngs(cpu), pngs(gpu));
+    assert_eq!(
+        a.iter().map(|x| &x.0).collect::<Vec<_>>(),
+        b.iter().map(|x| &x.0).collect::<Vec<_>>(),
+        "{what}: frame names"
+    );
+    assert!(!a.is_empty(), "{what}: no frames");
+    for ((name, x), (_, y)) in a.iter().zip(&b) {
+        assert_eq!(x.dimensions(), y.dimensions(), "{what} {name}: size");
+        let (mut worst, mut at) = (0, 0);
+        for (i, (p, q)) in x.as_raw().iter().zip(y.as_raw()).enumerate() {
+            let d = (*p as i32 - *q as i32).abs();
+            if d > worst {
+                (worst, at) = (d, i);
+            }
+        }
+        assert!(
+            worst <= RGB8_TOL,
+            "{what} {name}: byte {at} differs by {worst} (cpu {}, gpu {})",
+            x.as_raw()[at],
+            y.as_raw()[at]
+        );
+        // Not all black: a frame that rendered nothing would pass trivially.
+        assert!(
+            x.as_raw().iter().any(|&v| v > 0),
+            "{what} {name}: empty frame"
+        );
+    }
+}
+
+#[test]
+fn reenact_and_orbit_on_the_gpu_match_the_cpu() {
+    let f = fixture();
+    for (sub, extra) in [
+        ("reenact", vec!["--driver".to_string(), f.s("driver.json")]),
+        (
+            "orbit",
+            vec!["--frames".into(), "3".into(), "--yaw".into(), "20".into()],
+        ),
+    ] {
+        let mut outs = Vec::new();
+        for device in ["cpu", "gpu"] {
+            let dir = f.s(&format!("{sub}_{device}"));
+            let mut e: Vec<&str> = extra.iter().map(String::as_str).collect();
+            e.extend(["--device", device, "--no-watermark", "-o", &dir]);
+            let args = avatar_cmd(f, sub, &e);
+            let out = run(&strs(&args), &[]);
+            if device == "gpu" && !have_gpu(&out) {
+                return;
+            }
+            assert!(
+                out.status.success(),
+                "{sub} --device {device}:\n{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+            if device == "gpu" {
+                let err = String::from_utf8_lossy(&out.stderr);
+                assert!(
+                    err.contains("rendering on"),
+                    "{sub}: no device line in\n{err}"
+                );
+                assert!(err.contains("GPU drive"), "{sub}: no GPU timing in\n{err}");
+            }
+            outs.push(dir);
+        }
+        assert_same_frames(sub, Path::new(&outs[0]), Path::new(&outs[1]));
+    }
+}
+
+#[test]
+fn bench_drive_reports_stages_on_both_devices() {
+    let out = run(
+        &[
+            "bench", "drive", "--device", "gpu", "--preset", "tiny", "--frames", "3",
+        ],
+        &[],
+    );
+    if !have_gpu(&out) {
+        return;
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    for want in [
+        "drive on the GPU",
+        "FLAME",
+        "splat: project + sort + bin",
+        "splat: raster",
+        "renderer: U-Net + SFT",
+        "renderer: mapping + decoder",
+        "frames/s",
+    ] {
+        assert!(
+            text.contains(want),
+            "bench drive --device gpu: no `{want}` in\n{text}"
+        );
+    }
+    let out = ok(&[
+        "bench",
+        "drive",
+        "--device",
+        "cpu",
+        "--preset",
+        "tiny",
+        "--frames",
+        "2",
+        "--threads",
+        "1",
+    ]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    for want in [
+        "drive on the CPU (1 threads)",
+        "FLAME",
+        "splat",
+        "renderer",
+        "frames/s",
+    ] {
+        assert!(
+            text.contains(want),
+            "bench drive --device cpu: no `{want}` in\n{text}"
+        );
+    }
+}
+
+#[test]
+fn no_adapter_is_one_line_for_gpu_and_a_fallback_for_auto() {
+    let env = [("GAGAVATAR_GPU_ADAPTER", NO_SUCH_ADAPTER)];
+    let out = run(
+        &[
+            "bench", "drive", "--device", "gpu", "--preset", "tiny", "--frames", "1",
+        ],
+        &env,
+    );
+    assert!(
+        !out.status.success(),
+        "--device gpu without an adapter succeeded"
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
+    assert_eq!(lines.len(), 1, "expected one error line, got:\n{err}");
+    assert!(lines[0].contains("no GPU adapter found"), "{err}");
+    assert!(lines[0].contains(NO_SUCH_ADAPTER), "{err}");
+
+    let out = run(
+        &[
+            "bench",
+            "drive",
+            "--device",
+            "auto",
+            "--preset",
+            "tiny",
+            "--frames",
+            "1",
+            "--threads",
+            "1",
+        ],
+        &env,
+    );
+    assert!(
+        out.status.success(),
+        "--device auto without an adapter failed:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("rendering on the CPU"),
+        "no fallback note in\n{err}"
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("drive on the CPU"));
+}

@@ -1,0 +1,194 @@
+//! Adapter selection and the device every kernel runs on.
+//!
+//! wgpu sees Vulkan, Metal and D3D12 adapters. Real GPUs (discrete, integrated, virtual) are
+//! preferred; CPU-emulated adapters (Mesa's lavapipe/llvmpipe, WARP) are slower than the CPU path
+//! for this workload and are used only when the caller allows them (`--device gpu` said
+//! explicitly, or the tests).
+
+use std::fmt;
+
+use crate::error::{GpuError, Result};
+
+/// Which adapters [`Gpu::new`] may pick.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AdapterPolicy {
+    /// Only real GPUs (not CPU-emulated adapters).
+    RealOnly,
+    /// Real GPUs first, else a CPU-emulated adapter.
+    AllowCpu,
+}
+
+/// Environment variable: a case-insensitive substring of the adapter name to use (when a
+/// machine has several), e.g. `GAGAVATAR_GPU_ADAPTER=h200`.
+pub const ADAPTER_ENV: &str = "GAGAVATAR_GPU_ADAPTER";
+
+/// The device, its queue and what it supports.
+pub struct Gpu {
+    pub device: wgpu::Device,
+    pub queue: wgpu::Queue,
+    pub info: wgpu::AdapterInfo,
+    pub limits: wgpu::Limits,
+    /// Features enabled on the device (a subset of [`Gpu::adapter_features`]).
+    pub features: wgpu::Features,
+    /// Everything the adapter offers (reported by the bench, for the tuning notes).
+    pub adapter_features: wgpu::Features,
+    /// Cooperative-matrix (tensor core) shapes the adapter reports; empty when none. Reported
+    /// only: no kernel uses them yet (see crates/gpu/README.md).
+    pub cooperative_matrices: Vec<wgpu::CooperativeMatrixProperties>,
+    pub(crate) kernels: crate::kernel::KernelCache,
+    /// Bytes of the buffers created through [`Gpu::buffer`] and its siblings.
+    pub(crate) allocated: std::sync::atomic::AtomicU64,
+}
+
+impl fmt::Debug for Gpu {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Gpu").field("info", &self.info).finish()
+    }
+}
+
+/// Whether an adapter emulates a GPU on the CPU.
+pub fn is_cpu_adapter(info: &wgpu::AdapterInfo) -> bool {
+    info.device_type == wgpu::DeviceType::Cpu
+}
+
+fn rank(info: &wgpu::AdapterInfo) -> u8 {
+    match info.device_type {
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        wgpu::DeviceType::VirtualGpu => 2,
+        wgpu::DeviceType::Other => 3,
+        wgpu::DeviceType::Cpu => 4,
+    }
+}
+
+/// A one-line description of an adapter.
+pub fn describe(info: &wgpu::AdapterInfo) -> String {
+    let driver = if info.driver.is_empty() {
+        String::new()
+    } else {
+        format!(", driver {} {}", info.driver, info.driver_info)
+    };
+    format!(
+        "{} ({:?}, {:?}{driver})",
+        info.name, info.backend, info.device_type
+    )
+}
+
+fn instance() -> wgpu::Instance {
+    // WGPU_BACKEND (e.g. `vulkan`) narrows the backends, as in every wgpu program.
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
+    desc.backends &= wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12;
+    wgpu::Instance::new(desc)
+}
+
+/// Every adapter wgpu can see (for messages and `bench`).
+pub fn list_adapters() -> Vec<wgpu::AdapterInfo> {
+    let inst = instance();
+    pollster::block_on(inst.enumerate_adapters(wgpu::Backends::all()))
+        .iter()
+        .map(|a| a.get_info())
+        .collect()
+}
+
+impl Gpu {
+    /// Opens the best adapter the policy allows: discrete before integrated before virtual
+    /// before CPU-emulated, Vulkan before the other backends on ties; [`ADAPTER_ENV`] narrows the
+    /// choice by name.
+    pub fn new(policy: AdapterPolicy) -> Result<Self> {
+        let inst = instance();
+        let adapters = pollster::block_on(inst.enumerate_adapters(wgpu::Backends::all()));
+        let seen: Vec<String> = adapters.iter().map(|a| describe(&a.get_info())).collect();
+        let wanted = std::env::var(ADAPTER_ENV).ok().map(|s| s.to_lowercase());
+        let mut candidates: Vec<wgpu::Adapter> = adapters
+            .into_iter()
+            .filter(|a| {
+                let info = a.get_info();
+                (policy == AdapterPolicy::AllowCpu || !is_cpu_adapter(&info))
+                    && wanted
+                        .as_ref()
+                        .is_none_or(|w| info.name.to_lowercase().contains(w))
+                    && a.get_downlevel_capabilities()
+                        .flags
+                        .contains(wgpu::DownlevelFlags::COMPUTE_SHADERS)
+            })
+            .collect();
+        candidates.sort_by_key(|a| {
+            let info = a.get_info();
+            (rank(&info), info.backend != wgpu::Backend::Vulkan)
+        });
+        let Some(adapter) = candidates.into_iter().next() else {
+            return Err(GpuError::NoAdapter {
+                policy,
+                wanted,
+                seen: if seen.is_empty() {
+                    "none".into()
+                } else {
+                    seen.join("; ")
+                },
+            });
+        };
+        Self::open(adapter)
+    }
+
+    fn open(adapter: wgpu::Adapter) -> Result<Self> {
+        let info = adapter.get_info();
+        let adapter_features = adapter.features();
+        // Only what the kernels can use: f16 and subgroups for tuned kernels, timestamps for
+        // the per-stage profile. None is required.
+        let wanted = wgpu::Features::SHADER_F16
+            | wgpu::Features::SUBGROUP
+            | wgpu::Features::TIMESTAMP_QUERY
+            | wgpu::Features::TIMESTAMP_QUERY_INSIDE_ENCODERS;
+        let features = adapter_features & wanted;
+        // The adapter's own limits: the renderer's largest buffers (32 channels at 512x512) and
+        // bindings exceed WebGPU's defaults on some adapters, never on a real one.
+        let limits = adapter.limits();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("gagavatar"),
+            required_features: features,
+            required_limits: limits.clone(),
+            experimental_features: wgpu::ExperimentalFeatures::disabled(),
+            memory_hints: wgpu::MemoryHints::Performance,
+            trace: wgpu::Trace::Off,
+        }))
+        .map_err(|e| GpuError::Device(format!("{}: {e}", describe(&info))))?;
+        let cooperative_matrices = adapter.cooperative_matrix_properties();
+        Ok(Self {
+            device,
+            queue,
+            info,
+            limits,
+            features,
+            adapter_features,
+            cooperative_matrices,
+            kernels: Default::default(),
+            allocated: Default::default(),
+        })
+    }
+
+    pub fn is_cpu(&self) -> bool {
+        is_cpu_adapter(&self.info)
+    }
+
+    pub fn describe(&self) -> String {
+        describe(&self.info)
+    }
+
+    /// Bytes of GPU buffers this process created through this device (weights, activations,
+    /// scratch; not the driver's own memory).
+    pub fn allocated_bytes(&self) -> u64 {
+        self.allocated.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    pub fn has_timestamps(&self) -> bool {
+        self.features.contains(wgpu::Features::TIMESTAMP_QUERY)
+    }
+
+    /// Blocks until every submitted command has finished.
+    pub fn wait(&self) -> Result<()> {
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map(|_| ())
+            .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))
+    }
+}

@@ -1,0 +1,210 @@
+//! The kernels' tuning knobs (tile sizes, items per thread, sort digit width). Every value is
+//! substituted into the WGSL source when a pipeline is built, so trying another value needs no
+//! rebuild of the binary: set `GAGAVATAR_GPU_TUNE`, e.g.
+//! `GAGAVATAR_GPU_TUNE=conv_bn=128,conv_tn=8,radix_bits=5`. crates/gpu/README.md lists what to try.
+
+use crate::error::{GpuError, Result};
+
+/// Environment variable holding `key=value` pairs separated by commas.
+pub const TUNE_ENV: &str = "GAGAVATAR_GPU_TUNE";
+
+/// Output tile of the convolution kernel (an implicit GEMM: rows = output channels, columns =
+/// pixels, depth = input channels x kernel taps). A workgroup computes `bm x bn` outputs with
+/// `(bm / tm) * (bn / tn)` threads, each `tm x tn` of them, stepping `bk` along the depth.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ConvTile {
+    pub bm: u32,
+    pub bn: u32,
+    pub bk: u32,
+    pub tm: u32,
+    pub tn: u32,
+}
+
+impl ConvTile {
+    pub fn threads(&self) -> u32 {
+        (self.bm / self.tm) * (self.bn / self.tn)
+    }
+
+    fn check(&self, name: &str, max_threads: u32, max_shared: u32) -> Result<()> {
+        let ok = self.bm > 0
+            && self.bn > 0
+            && self.bk > 0
+            && self.tm > 0
+            && self.tn > 0
+            && self.bm.is_multiple_of(self.tm)
+            && self.bn.is_multiple_of(self.tn)
+            && self.threads() <= max_threads;
+        if !ok {
+            return Err(GpuError::Unsupported(format!(
+                "{name} tile {self:?}: bm, bn must be multiples of tm, tn, with at most \
+                 {max_threads} threads (bm/tm)(bn/tn)"
+            )));
+        }
+        let shared = 4 * self.bk * (self.bm + self.bn);
+        if shared > max_shared {
+            return Err(GpuError::Unsupported(format!(
+                "{name} tile {self:?} needs {shared} bytes of workgroup memory, the device has \
+                 {max_shared}"
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// All knobs; [`Tuning::default`] is what runs unless `GAGAVATAR_GPU_TUNE` says otherwise.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Tuning {
+    /// Values per thread of the prefix-sum kernels (blocks of 256 x this).
+    pub scan_items: u32,
+    /// Keys per thread of the radix-sort kernels (blocks of 256 x this).
+    pub radix_items: u32,
+    /// Bits per radix-sort pass.
+    pub radix_bits: u32,
+    /// Initial room for (tile, Gaussian) pairs, per Gaussian; grown when a frame needs more.
+    pub pairs_per_gaussian: f64,
+    /// Convolution tile for layers with many output pixels per output channel.
+    pub conv: ConvTile,
+    /// Convolution tile for layers with few pixels (16x16 and below): more channels per
+    /// workgroup, fewer pixels.
+    pub conv_small: ConvTile,
+    /// Depth (input channels x taps) per workgroup of the split-K convolution used where one
+    /// layer alone would not fill the device (low resolutions, many channels); 0 = never.
+    pub conv_split_k: u32,
+}
+
+impl Default for Tuning {
+    fn default() -> Self {
+        Self {
+            scan_items: 4,
+            radix_items: 4,
+            radix_bits: 4,
+            pairs_per_gaussian: 4.0,
+            conv: ConvTile {
+                bm: 32,
+                bn: 128,
+                bk: 16,
+                tm: 8,
+                tn: 8,
+            },
+            conv_small: ConvTile {
+                bm: 64,
+                bn: 16,
+                bk: 16,
+                tm: 4,
+                tn: 2,
+            },
+            conv_split_k: 576,
+        }
+    }
+}
+
+impl Tuning {
+    /// The defaults with `GAGAVATAR_GPU_TUNE` applied.
+    pub fn from_env() -> Result<Self> {
+        let mut t = Self::default();
+        if let Ok(spec) = std::env::var(TUNE_ENV) {
+            t.apply(&spec)?;
+        }
+        Ok(t)
+    }
+
+    /// Applies `key=value,...` (keys as the field names, `conv_bm` .. `conv_tn` and
+    /// `conv_small_bm` .. for the tiles).
+    pub fn apply(&mut self, spec: &str) -> Result<()> {
+        for item in spec.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+            let bad = |why: &str| GpuError::Unsupported(format!("{TUNE_ENV}: `{item}`: {why}"));
+            let (k, v) = item
+                .split_once('=')
+                .ok_or_else(|| bad("expected key=value"))?;
+            let int = || {
+                v.trim()
+                    .parse::<u32>()
+                    .map_err(|_| bad("not a whole number"))
+            };
+            match k.trim() {
+                "scan_items" => self.scan_items = int()?,
+                "radix_items" => self.radix_items = int()?,
+                "radix_bits" => self.radix_bits = int()?,
+                "pairs_per_gaussian" => {
+                    self.pairs_per_gaussian = v.trim().parse().map_err(|_| bad("not a number"))?
+                }
+                "conv_split_k" => self.conv_split_k = int()?,
+                key => {
+                    let (tile, field) = if let Some(f) = key.strip_prefix("conv_small_") {
+                        (&mut self.conv_small, f)
+                    } else if let Some(f) = key.strip_prefix("conv_") {
+                        (&mut self.conv, f)
+                    } else {
+                        return Err(bad("unknown key"));
+                    };
+                    let slot = match field {
+                        "bm" => &mut tile.bm,
+                        "bn" => &mut tile.bn,
+                        "bk" => &mut tile.bk,
+                        "tm" => &mut tile.tm,
+                        "tn" => &mut tile.tn,
+                        _ => return Err(bad("unknown key")),
+                    };
+                    *slot = int()?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks the values against the rules the kernels rely on and the device's limits.
+    pub fn check(&self, limits: &wgpu::Limits) -> Result<()> {
+        let bad = |m: String| Err(GpuError::Unsupported(format!("{TUNE_ENV}: {m}")));
+        if !(1..=16).contains(&self.scan_items) || !(1..=16).contains(&self.radix_items) {
+            return bad("scan_items and radix_items must be 1..=16".into());
+        }
+        if !(1..=8).contains(&self.radix_bits) {
+            return bad("radix_bits must be 1..=8".into());
+        }
+        // The radix scatter keeps a block of keys and values in workgroup memory.
+        let radix_shared = 8 * 256 * self.radix_items + 1024 + 4 * (1 << self.radix_bits);
+        if radix_shared > limits.max_compute_workgroup_storage_size {
+            return bad(format!(
+                "radix_items {} needs {radix_shared} bytes of workgroup memory",
+                self.radix_items
+            ));
+        }
+        if !(self.pairs_per_gaussian > 0.0 && self.pairs_per_gaussian <= 1024.0) {
+            return bad("pairs_per_gaussian must be in (0, 1024]".into());
+        }
+        let threads = limits.max_compute_invocations_per_workgroup;
+        let shared = limits.max_compute_workgroup_storage_size;
+        self.conv.check("conv", threads, shared)?;
+        self.conv_small.check("conv_small", threads, shared)?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_and_rejects() {
+        let mut t = Tuning::default();
+        t.apply("conv_bn=128, conv_small_tm=8,radix_bits=5,pairs_per_gaussian=2.5")
+            .unwrap();
+        assert_eq!(t.conv.bn, 128);
+        assert_eq!(t.conv_small.tm, 8);
+        assert_eq!(t.radix_bits, 5);
+        assert_eq!(t.pairs_per_gaussian, 2.5);
+        for bad in ["conv_bn", "conv_xx=1", "nope=2", "radix_bits=x"] {
+            assert!(Tuning::default().apply(bad).is_err(), "{bad}");
+        }
+        let lim = wgpu::Limits::default();
+        Tuning::default().check(&lim).unwrap();
+        let mut t = Tuning::default();
+        t.conv.tm = 3;
+        assert!(t.check(&lim).is_err());
+        let t = Tuning {
+            radix_bits: 9,
+            ..Default::default()
+        };
+        assert!(t.check(&lim).is_err());
+    }
+}
