@@ -2,6 +2,7 @@
 //! reconstructing the avatar once, and turning batches of (record, camera) into RGB frames with
 //! a per-stage time split.
 
+pub use crate::progress::{progress, spinner};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -13,7 +14,6 @@ use gagavatar_net::checkpoint;
 use gagavatar_net::model::{Avatar, GagAvatar};
 use gagavatar_net::style_unet::Noise;
 use gagavatar_video::{VideoOptions, VideoWriter};
-use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cmd_model::{image_tensor, load_flame, preset, read_image};
 use crate::tracking;
@@ -530,27 +530,6 @@ pub fn side_by_side(left: &image::RgbImage, right: &[u8], w: usize, h: usize) ->
         row[w * 3..].copy_from_slice(&right[y * w * 3..(y + 1) * w * 3]);
     }
     out
-}
-
-pub fn progress(len: usize, what: &str) -> ProgressBar {
-    let bar = ProgressBar::new(len as u64);
-    bar.set_style(
-        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} frames, {per_sec}, ETA {eta}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
-    bar.set_message(what.to_string());
-    bar
-}
-
-/// A progress line for a job of unknown length.
-pub fn spinner(what: &str) -> ProgressBar {
-    let bar = ProgressBar::new_spinner();
-    bar.set_style(
-        ProgressStyle::with_template("{spinner} {msg}: {pos} frames, {per_sec}, {elapsed}")
-            .unwrap_or_else(|_| ProgressStyle::default_spinner()),
-    );
-    bar.set_message(what.to_string());
-    bar
 }
 
 #[cfg(test)]

@@ -294,7 +294,7 @@ pub fn run_train(a: TrainArgs) -> Result<()> {
 }
 
 /// The release's validation table (`eval` without `--mode`).
-pub fn run_eval(a: crate::cmd_eval::EvalArgs) -> Result<()> {
+pub fn run_eval(a: crate::eval_args::EvalArgs) -> Result<()> {
     set_threads(a.threads);
     let ckpt = a
         .ckpt

@@ -17,6 +17,8 @@ mod cmd_track;
 mod cmd_train;
 mod cmd_video;
 mod device_args;
+mod eval_args;
+mod progress;
 mod tracking;
 
 use clap::{Parser, Subcommand};

@@ -35,8 +35,8 @@ use image::RgbImage;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::animate::{progress, spinner};
 use crate::cmd_model::SYNTHETIC_FLAME;
+use crate::progress::{progress, spinner};
 
 /// Bump when the tracker's results change for the same input (a new fit, crop or matte), so
 /// cached tracks made by older builds are not reused. The cache key also holds the crate

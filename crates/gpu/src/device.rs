@@ -8,15 +8,7 @@
 use std::fmt;
 
 use crate::error::{GpuError, Result};
-
-/// Which adapters [`Gpu::new`] may pick.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum AdapterPolicy {
-    /// Only real GPUs (not CPU-emulated adapters).
-    RealOnly,
-    /// Real GPUs first, else a CPU-emulated adapter.
-    AllowCpu,
-}
+pub use crate::policy::AdapterPolicy;
 
 /// Environment variable: a case-insensitive substring of the adapter name to use (when a
 /// machine has several), e.g. `GAGAVATAR_GPU_ADAPTER=h200`.
@@ -35,7 +27,7 @@ pub struct Gpu {
     /// Cooperative-matrix (tensor core) shapes the adapter reports; empty when none. Reported
     /// only: no kernel uses them yet (see crates/gpu/README.md).
     pub cooperative_matrices: Vec<wgpu::CooperativeMatrixProperties>,
-    pub(crate) kernels: crate::kernel::KernelCache,
+    pub(crate) kernels: crate::pipelines::KernelCache,
     /// Bytes of the buffers created through [`Gpu::buffer`] and its siblings.
     pub(crate) allocated: std::sync::atomic::AtomicU64,
 }

@@ -1,6 +1,6 @@
 //! The crate's error type.
 
-use crate::device::AdapterPolicy;
+use crate::policy::AdapterPolicy;
 
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {

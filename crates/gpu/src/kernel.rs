@@ -4,30 +4,13 @@
 //! A stage is built once (pipelines, buffers, bind groups) and then only recorded, frame after
 //! frame, into one command buffer: nothing is allocated per frame.
 
-use std::collections::HashMap;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 use wgpu::util::DeviceExt;
 
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
-
-/// How a kernel sees one binding (bindings are numbered in order, all in group 0).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum Bind {
-    Uniform,
-    Read,
-    ReadWrite,
-}
-
-/// A compute pipeline and its bind-group layout.
-#[derive(Debug)]
-pub struct Kernel {
-    pub name: String,
-    pub pipeline: wgpu::ComputePipeline,
-    pub layout: wgpu::BindGroupLayout,
-    binds: Vec<Bind>,
-}
+pub use crate::pipelines::{Bind, Kernel, KernelCache};
 
 /// WGSL helpers shared by the kernels (prepended to every source).
 const COMMON: &str = include_str!("shaders/common.wgsl");
@@ -46,12 +29,6 @@ pub fn substitute(name: &str, source: &str, consts: &[(&str, String)]) -> Result
         )));
     }
     Ok(s)
-}
-
-/// Pipelines by (name, constants), so layers of the same shape share one compilation.
-#[derive(Debug, Default)]
-pub struct KernelCache {
-    map: Mutex<HashMap<String, Arc<Kernel>>>,
 }
 
 impl Gpu {

@@ -8,6 +8,8 @@ pub mod drive;
 pub mod error;
 pub mod flame;
 pub mod kernel;
+pub mod pipelines;
+pub mod policy;
 pub mod renderer;
 pub mod sort;
 pub mod splat;
