@@ -544,13 +544,11 @@ fn bench_video(args: VideoBench) -> Result<()> {
             median(&mut cpu_child),
         );
     }
-    if let Ok(load) = std::fs::read_to_string("/proc/loadavg") {
-        println!(
-            "  load average {} on {} cores (other work slows the wall-clock rates, not the CPU per frame)",
-            load.split_whitespace().take(3).collect::<Vec<_>>().join(" "),
-            num_cpus()
-        );
-    }
+    println!(
+        "  load average {} on {} cores (other work slows the wall-clock rates, not the CPU per frame)",
+        load_average(),
+        num_cpus()
+    );
     Ok(())
 }
 
@@ -860,7 +858,6 @@ fn bench_track(args: TrackBench) -> Result<()> {
         println!("  photo run {r}: {ms:.0} ms");
         let _ = std::fs::remove_dir_all(&out);
     }
-    let load_avg = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     println!(
         "video tracking: {:.1} frames/s (median of {}), photo: {:.0} ms (median of {}), {} threads; \
          load average {}",
@@ -869,7 +866,7 @@ fn bench_track(args: TrackBench) -> Result<()> {
         med(&photo_ms),
         photo_ms.len(),
         args.threads,
-        load_avg.split_whitespace().take(3).collect::<Vec<_>>().join(" ")
+        load_average()
     );
     Ok(())
 }

@@ -1,6 +1,8 @@
 //! Training datasets: the release layout (Python-written fixture), our folder layout, and the
 //! release layout written by us.
 
+// The same fixtures as the formats crate's tests (temporary folders, pickles, LMDBs).
+#[path = "../../formats/tests/common/mod.rs"]
 mod common;
 
 use std::collections::BTreeMap;

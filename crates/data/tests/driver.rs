@@ -1,5 +1,7 @@
 //! Driving sequences (tracked folders, pickles, JSON) and source records.
 
+// The same fixtures as the formats crate's tests (temporary folders, pickles, LMDBs).
+#[path = "../../formats/tests/common/mod.rs"]
 mod common;
 
 use std::path::Path;

@@ -1,5 +1,7 @@
 //! Image values: PNG / JPEG bytes and torch-saved tensors decode to the pixels Python wrote.
 
+// The same fixtures as the formats crate's tests (temporary folders, pickles, LMDBs).
+#[path = "../../formats/tests/common/mod.rs"]
 mod common;
 
 use common::{data, hex};

@@ -1,6 +1,8 @@
 //! Tracked-frame pickles (`optim.pkl`): the release's numpy pickles read exactly, our writer's
 //! output read back identically, and every broken field named.
 
+// The same fixtures as the formats crate's tests (temporary folders, pickles, LMDBs).
+#[path = "../../formats/tests/common/mod.rs"]
 mod common;
 
 use std::collections::BTreeMap;
