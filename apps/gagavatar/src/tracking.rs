@@ -41,7 +41,7 @@ use crate::progress::{progress, spinner};
 /// Bump when the tracker's results change for the same input (a new fit, crop or matte), so
 /// cached tracks made by older builds are not reused. The cache key also holds the crate
 /// version and the tracking options.
-pub const TRACKER_REVISION: u32 = 3;
+pub const TRACKER_REVISION: u32 = 4;
 /// Photos larger than this (long side) are tracked downscaled; the networks see at most 256 px.
 const WORK_SIDE: u32 = 4096;
 /// Smaller images are refused: no face fits in them.
