@@ -2,85 +2,32 @@
 //! FLAME asset, plus every bad-input case of the issue (one clear error line, non-zero exit, no
 //! output or temp file left behind).
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::path::Path;
+use std::process::Command;
 use std::sync::OnceLock;
 
 use gagavatar_splat::scene::covariance;
 use gagavatar_splat::GaussianScene;
 
-const BIN: &str = env!("CARGO_BIN_EXE_gagavatar");
+mod common;
+
+use common::{ok, record_turned as record, run, strs, Fixture, BIN};
+
 /// The tiny preset renders 64x64 frames.
-const SIZE: usize = 64;
+const SIZE: usize = common::SIZE as usize;
 /// Opacities go through a logit and back in f32: a few ulps of 1.
 const OPACITY_TOL: f64 = 1e-5;
 /// Covariances from the unit-quaternion form, relative to the largest entry: f32 storage.
 const COV_REL_TOL: f64 = 1e-4;
 
-struct Fixture {
-    dir: PathBuf,
-}
-
-impl Fixture {
-    fn path(&self, name: &str) -> PathBuf {
-        self.dir.join(name)
-    }
-    fn s(&self, name: &str) -> String {
-        self.path(name).display().to_string()
-    }
-}
-
-fn run(args: &[&str]) -> Output {
-    Command::new(BIN)
-        .args(args)
-        .output()
-        .expect("running the gagavatar binary")
-}
-
-fn ok(args: &[&str]) -> Output {
-    let out = run(args);
-    assert!(
-        out.status.success(),
-        "gagavatar {args:?} failed:\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
-}
-
-fn record(exp: f64, yaw: f64) -> serde_json::Value {
-    let (s, c) = yaw.sin_cos();
-    serde_json::json!({
-        "shapecode": [0.2, -0.1, 0.3],
-        "expcode": (0..10).map(|k| exp * ((k as f64) + 1.0).sin()).collect::<Vec<_>>(),
-        "posecode": [0, 0, 0, 0.05, 0, 0],
-        "eyecode": [0, 0, 0, 0, 0, 0],
-        "transform_matrix": [[-c, 0.0, s, 0.0], [0.0, 1.0, 0.0, 0.0], [-s, 0.0, -c, 9.0]],
-    })
-}
-
+/// The common fixture plus `src_100x80.png`, `expr.json` and a 5-frame `driver.json`; made once
+/// and shared by every test here.
 fn fixture() -> &'static Fixture {
     static F: OnceLock<Fixture> = OnceLock::new();
     F.get_or_init(|| {
-        let dir = std::env::temp_dir().join(format!("gagavatar_animate_{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let f = Fixture { dir };
-        ok(&["flame", "synth", "-o", &f.s("flame.safetensors")]);
-        ok(&[
-            "init-weights",
-            "--preset",
-            "tiny",
-            "--seed",
-            "4",
-            "-o",
-            &f.s("tiny.safetensors"),
-        ]);
-        let img = image::RgbImage::from_fn(SIZE as u32, SIZE as u32, |x, y| {
-            image::Rgb([(x * 4) as u8, (y * 4) as u8, ((x + y) * 2) as u8])
-        });
-        img.save(f.path("src.png")).unwrap();
+        let f = Fixture::new("animate");
         let big = image::RgbImage::from_fn(100, 80, |x, y| image::Rgb([x as u8, y as u8, 7]));
         big.save(f.path("src_100x80.png")).unwrap();
-        std::fs::write(f.path("src.json"), record(0.0, 0.0).to_string()).unwrap();
         std::fs::write(f.path("expr.json"), record(0.8, 0.0).to_string()).unwrap();
         let frames: Vec<_> = (0..5)
             .map(|i| record(0.4 * i as f64, 0.1 * i as f64))
@@ -96,22 +43,7 @@ fn fixture() -> &'static Fixture {
 
 /// `gagavatar <sub> <source args> <extra>`.
 fn avatar_cmd(f: &Fixture, sub: &str, extra: &[&str]) -> Vec<String> {
-    let mut v = vec![sub.to_string()];
-    for (k, name) in [
-        ("--ckpt", "tiny.safetensors"),
-        ("--flame", "flame.safetensors"),
-        ("--source", "src.png"),
-        ("--source-record", "src.json"),
-    ] {
-        v.push(k.into());
-        v.push(f.s(name));
-    }
-    v.extend(extra.iter().map(|s| s.to_string()));
-    v
-}
-
-fn strs(v: &[String]) -> Vec<&str> {
-    v.iter().map(String::as_str).collect()
+    f.avatar_args(sub, &[], extra)
 }
 
 fn release_small() -> String {

@@ -9,7 +9,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
 
-const BIN: &str = env!("CARGO_BIN_EXE_gagavatar");
+mod common;
+
+use common::{strs, Fixture, BIN};
+
 /// Frames are 8-bit: the GPU's and the CPU's f32 images (within 1e-6 at this size, see
 /// crates/gpu) can round to neighbouring levels where a value sits on a half step.
 const RGB8_TOL: i32 = 1;
@@ -70,53 +73,23 @@ fn have_gpu(out: &Output) -> bool {
     panic!("gagavatar --device gpu failed:\n{err}");
 }
 
-struct Fixture {
-    dir: PathBuf,
-}
-
-impl Fixture {
-    fn s(&self, name: &str) -> String {
-        self.dir.join(name).display().to_string()
-    }
-}
-
+/// A driving record with the eyes turned a little, so that the eye path is compared too.
 fn record(exp: f64, yaw: f64) -> serde_json::Value {
-    let (s, c) = yaw.sin_cos();
-    serde_json::json!({
-        "shapecode": [0.2, -0.1, 0.3],
-        "expcode": (0..10).map(|k| exp * ((k as f64) + 1.0).sin()).collect::<Vec<_>>(),
-        "posecode": [0, 0, 0, 0.05, 0, 0],
-        "eyecode": [0.01, 0, 0, 0, 0.02, 0],
-        "transform_matrix": [[-c, 0.0, s, 0.0], [0.0, 1.0, 0.0, 0.0], [-s, 0.0, -c, 9.0]],
-    })
+    let mut r = common::record_turned(exp, yaw);
+    r["eyecode"] = serde_json::json!([0.01, 0, 0, 0, 0.02, 0]);
+    r
 }
 
+/// The common fixture (tiny weights from seed 9) plus a 4-frame `driver.json`.
 fn fixture() -> &'static Fixture {
     static F: OnceLock<Fixture> = OnceLock::new();
     F.get_or_init(|| {
-        let dir = std::env::temp_dir().join(format!("gagavatar_gpu_cli_{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let f = Fixture { dir };
-        ok(&["flame", "synth", "-o", &f.s("flame.safetensors")]);
-        ok(&[
-            "init-weights",
-            "--preset",
-            "tiny",
-            "--seed",
-            "9",
-            "-o",
-            &f.s("tiny.safetensors"),
-        ]);
-        let img = image::RgbImage::from_fn(64, 64, |x, y| {
-            image::Rgb([(x * 4) as u8, (y * 4) as u8, ((x + y) * 2) as u8])
-        });
-        img.save(f.dir.join("src.png")).unwrap();
-        std::fs::write(f.dir.join("src.json"), record(0.0, 0.0).to_string()).unwrap();
+        let f = Fixture::with_seed("gpu_cli", 9);
         let frames: Vec<_> = (0..4)
             .map(|i| record(0.5 * i as f64, 0.15 * i as f64))
             .collect();
         std::fs::write(
-            f.dir.join("driver.json"),
+            f.path("driver.json"),
             serde_json::json!({"fps": 10, "frames": frames}).to_string(),
         )
         .unwrap();
@@ -125,22 +98,7 @@ fn fixture() -> &'static Fixture {
 }
 
 fn avatar_cmd(f: &Fixture, sub: &str, extra: &[&str]) -> Vec<String> {
-    let mut v = vec![sub.to_string()];
-    for (k, name) in [
-        ("--ckpt", "tiny.safetensors"),
-        ("--flame", "flame.safetensors"),
-        ("--source", "src.png"),
-        ("--source-record", "src.json"),
-    ] {
-        v.push(k.into());
-        v.push(f.s(name));
-    }
-    v.extend(extra.iter().map(|s| s.to_string()));
-    v
-}
-
-fn strs(v: &[String]) -> Vec<&str> {
-    v.iter().map(String::as_str).collect()
+    f.avatar_args(sub, &[], extra)
 }
 
 fn pngs(dir: &Path) -> Vec<(String, image::RgbImage)> {

@@ -42,14 +42,20 @@ pub fn fails(args: &[&str]) -> String {
     last
 }
 
-/// A tracked-frame record as JSON.
+/// A tracked-frame record as JSON, facing the camera.
 pub fn record(exp: f64) -> serde_json::Value {
+    record_turned(exp, 0.0)
+}
+
+/// A tracked-frame record as JSON with the head turned by `yaw` radians.
+pub fn record_turned(exp: f64, yaw: f64) -> serde_json::Value {
+    let (s, c) = yaw.sin_cos();
     serde_json::json!({
         "shapecode": [0.2, -0.1, 0.3],
         "expcode": (0..10).map(|k| exp * ((k as f64) + 1.0).sin()).collect::<Vec<_>>(),
         "posecode": [0, 0, 0, 0.05, 0, 0],
         "eyecode": [0, 0, 0, 0, 0, 0],
-        "transform_matrix": [[-1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 9.0]],
+        "transform_matrix": [[-c, 0.0, s, 0.0], [0.0, 1.0, 0.0, 0.0], [-s, 0.0, -c, 9.0]],
     })
 }
 
@@ -61,6 +67,11 @@ pub struct Fixture {
 
 impl Fixture {
     pub fn new(tag: &str) -> Self {
+        Self::with_seed(tag, 4)
+    }
+
+    /// The same folder with the tiny weights drawn from `seed`.
+    pub fn with_seed(tag: &str, seed: u64) -> Self {
         let dir = std::env::temp_dir().join(format!("gagavatar_{tag}_{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
@@ -71,7 +82,7 @@ impl Fixture {
             "--preset",
             "tiny",
             "--seed",
-            "4",
+            &seed.to_string(),
             "-o",
             &f.s("tiny.safetensors"),
         ]);
