@@ -323,14 +323,20 @@ fn noisy_landmarks_figures() {
     }
 }
 
-/// A video with the identity unknown: one shape solved on keyframes, then every frame. Views
-/// from several directions pin the shared shape, so the cameras come back within the brief's
-/// bounds (the translation up to the head's size, see the top of this file).
-#[test]
-fn video_shares_one_shape_and_tracks_the_camera() {
+/// Per-frame camera errors of a 16-frame video of one synthetic head (poses drawn
+/// independently per frame) with landmark noise `sigma`, fitted by `fit_sequence`.
+struct VideoFigures {
+    rotation_deg: Vec<f64>,
+    translation_pct: Vec<f64>,
+    /// After the size-distance trade.
+    translation_traded_pct: Vec<f64>,
+    /// Largest distance of each frame's reprojection from the clean landmarks (pixels).
+    reprojection_px: Vec<f64>,
+}
+
+fn video_figures(o: &FitOptions, sigma: f64) -> VideoFigures {
     let rig = rig();
-    let o = exact_options();
-    let mut rng = Rng::stream(3, &[0]);
+    let mut rng = Rng::stream(3, &[sigma.to_bits()]);
     let id = 3;
     let n = 16;
     let mut truths = vec![];
@@ -340,47 +346,75 @@ fn video_shares_one_shape_and_tracks_the_camera() {
         let (shape, st) = truth(&rig, id, f + 1);
         shape_true = shape.clone();
         let pts = exact_points(&rig, &shape, &st);
-        targets.push(Some(noisy_targets(&pts, 0.0, &mut rng, &weights())));
+        targets.push(Some(noisy_targets(
+            &pts,
+            sigma,
+            &mut rng,
+            &o.landmark_weights,
+        )));
         truths.push((st, pts));
     }
-    let fit = fit_sequence(&rig, &targets, &o, |_| {}).unwrap();
+    let fit = fit_sequence(&rig, &targets, o, |_| {}).unwrap();
     assert_eq!(fit.shape.len(), rig.n_shape);
     assert_eq!(fit.keyframes.len(), o.keyframes);
-    let (mut rots, mut trans, mut reps, mut trans_c) = (vec![], vec![], vec![], vec![]);
+    let mut v = VideoFigures {
+        rotation_deg: vec![],
+        translation_pct: vec![],
+        translation_traded_pct: vec![],
+        reprojection_px: vec![],
+    };
     let (size_t, size_f) = (head_size(&rig, &shape_true), head_size(&rig, &fit.shape));
     for (f, (st, pts)) in fit.frames.iter().zip(&truths) {
         let f = f.as_ref().expect("every frame has targets");
         let (r, tr) = camera_error(&st.camera, &f.state.camera);
-        trans_c.push(size_compensated_translation_error(
-            &st.camera,
-            &f.state.camera,
-            size_t,
-            size_f,
-        ));
-        rots.push(r);
-        trans.push(tr);
+        v.rotation_deg.push(r);
+        v.translation_pct.push(tr);
+        v.translation_traded_pct
+            .push(size_compensated_translation_error(
+                &st.camera,
+                &f.state.camera,
+                size_t,
+                size_f,
+            ));
         let px = reproject(&rig, &fit.shape, &f.state).unwrap();
         let px: Vec<[f64; 2]> = px.into_iter().map(Option::unwrap).collect();
-        reps.push(max_dist(&px, pts));
+        v.reprojection_px.push(max_dist(&px, pts));
     }
-    let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
-    println!(
-        "video of 16 frames, exact landmarks, one shape: rotation median {:.3} max {:.3} deg; \
-         translation median {:.3} max {:.3} % (after the size-distance trade median {:.3} max \
-         {:.3} %); reprojection max {:.3} px; |shape| {:.2} (true {:.2})",
-        median(&rots),
-        max(&rots),
-        median(&trans),
-        max(&trans),
-        median(&trans_c),
-        max(&trans_c),
-        max(&reps),
-        norm(&fit.shape),
-        norm(&shape_true)
-    );
-    for (f, ((r, tc), e)) in rots.iter().zip(&trans_c).zip(&reps).enumerate() {
+    v
+}
+
+impl VideoFigures {
+    fn print(&self, what: &str) {
+        println!(
+            "video of 16 frames, identity unknown, {what}: rotation median {:.3} max {:.3} deg; \
+             translation median {:.3} max {:.3} % (after the size-distance trade median {:.3} \
+             max {:.3} %); distance to the clean landmarks max {:.3} px",
+            median(&self.rotation_deg),
+            max(&self.rotation_deg),
+            median(&self.translation_pct),
+            max(&self.translation_pct),
+            median(&self.translation_traded_pct),
+            max(&self.translation_traded_pct),
+            max(&self.reprojection_px)
+        );
+    }
+}
+
+/// A video with the identity unknown, exact landmarks: one shape solved on keyframes, then
+/// every frame. Views from several directions pin the shared shape, so the cameras come back
+/// within the brief's bounds (the translation up to the head's size, see the top of this file).
+#[test]
+fn video_shares_one_shape_and_tracks_the_camera() {
+    let v = video_figures(&exact_options(), 0.0);
+    v.print("exact landmarks, exact options");
+    for f in 0..v.rotation_deg.len() {
+        let (r, tc, e) = (
+            v.rotation_deg[f],
+            v.translation_traded_pct[f],
+            v.reprojection_px[f],
+        );
         assert!(
-            *r <= ROT_TOL_DEG && *tc <= TRANS_TOL_PCT && *e <= REPROJ_TOL_PX,
+            r <= ROT_TOL_DEG && tc <= TRANS_TOL_PCT && e <= REPROJ_TOL_PX,
             "frame {f}: rotation {r:.3} deg (tol {ROT_TOL_DEG}), translation after the \
              size-distance trade {tc:.3} % (tol {TRANS_TOL_PCT}), reprojection {e:.3} px (tol \
              {REPROJ_TOL_PX})"
@@ -388,8 +422,33 @@ fn video_shares_one_shape_and_tracks_the_camera() {
     }
     // The head's size itself is the prior's choice; only a far-off one would be a fault.
     assert!(
-        max(&trans) <= PHOTO_TRANS_TOL_PCT,
+        max(&v.translation_pct) <= PHOTO_TRANS_TOL_PCT,
         "translation {:.3} %",
-        max(&trans)
+        max(&v.translation_pct)
     );
+}
+
+/// The same video with the default options, exact and with realistic detector noise: figures,
+/// beyond a guard against a broken fit. The default shape prior (set against distorted heads
+/// in photos) holds the shared shape near the mean, which these heads (drawn with |shape|
+/// about 3.5) are not: that bias alone is 3.5 px and 4.7 degrees with exact landmarks, and
+/// the guard allows it plus 4 sigma of noise at a landmark. With a weaker shape prior
+/// (`FitOptions::shape_prior`) the camera is better and the head's size worse (measured,
+/// exact landmarks: prior 4, 1.7 degrees and 8.7 %; prior 0.4, 1.1 degrees and 20 %).
+#[test]
+fn noisy_video_figures() {
+    const PRIOR_BIAS_PX: f64 = 4.0;
+    /// Measured up to 9.1 degrees at 2 px; a flipped or unconverged camera is tens of degrees.
+    const ROT_GUARD_DEG: f64 = 15.0;
+    for sigma in [0.0, 1.0, 2.0] {
+        let v = video_figures(&FitOptions::default(), sigma);
+        v.print(&format!("{sigma} px noise, default options"));
+        assert!(
+            max(&v.reprojection_px) <= PRIOR_BIAS_PX + 4.0 * sigma
+                && max(&v.rotation_deg) <= ROT_GUARD_DEG,
+            "sigma {sigma}: distance to the clean landmarks {:.3} px, rotation {:.3} deg",
+            max(&v.reprojection_px),
+            max(&v.rotation_deg)
+        );
+    }
 }
