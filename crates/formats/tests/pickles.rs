@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::data;
+use common::{data, first_difference};
 use gagavatar_formats::numpy::ArrayData;
 use gagavatar_formats::pickle::{parse_pickle, read_pickle, DictKey, PyValue};
 use serde_json::{json, Value as Json};
@@ -50,33 +50,6 @@ fn canon(v: &PyValue) -> Json {
             let hex: String = a.to_le_bytes().iter().map(|x| format!("{x:02x}")).collect();
             json!({ "array": dtype, "shape": a.shape, "hex": hex })
         }
-    }
-}
-
-/// First differing path between two JSON trees, for readable failures.
-fn first_difference(want: &Json, got: &Json, path: &str) -> Option<String> {
-    match (want, got) {
-        (Json::Object(x), Json::Object(y)) => {
-            for (k, v) in x {
-                let Some(w) = y.get(k) else {
-                    return Some(format!("{path}.{k}: missing"));
-                };
-                if let Some(d) = first_difference(v, w, &format!("{path}.{k}")) {
-                    return Some(d);
-                }
-            }
-            (x.len() != y.len()).then(|| format!("{path}: key sets differ"))
-        }
-        (Json::Array(x), Json::Array(y)) => {
-            for (i, (v, w)) in x.iter().zip(y).enumerate() {
-                if let Some(d) = first_difference(v, w, &format!("{path}[{i}]")) {
-                    return Some(d);
-                }
-            }
-            (x.len() != y.len())
-                .then(|| format!("{path}: expected {} items, actual {}", x.len(), y.len()))
-        }
-        _ => (want != got).then(|| format!("{path}: expected {want}, actual {got}")),
     }
 }
 

@@ -1207,10 +1207,16 @@ fn raw_unicode_escape(line: &[u8]) -> Result<String, String> {
     Ok(s)
 }
 
+// The integration tests' helpers, shared rather than copied.
+#[cfg(test)]
+#[path = "../../tests/common/mod.rs"]
+mod test_common;
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use serde_json::{json, Value as Json};
+    use test_common::first_difference;
 
     fn golden(name: &str) -> std::path::PathBuf {
         std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -1297,39 +1303,6 @@ mod tests {
         out
     }
 
-    fn hex_bytes(h: &str) -> Vec<u8> {
-        (0..h.len())
-            .step_by(2)
-            .map(|i| u8::from_str_radix(&h[i..i + 2], 16).unwrap())
-            .collect()
-    }
-
-    /// First differing path between two JSON trees, for readable failures.
-    fn first_difference(a: &Json, b: &Json, path: &str) -> Option<String> {
-        match (a, b) {
-            (Json::Object(x), Json::Object(y)) => {
-                for (k, v) in x {
-                    let Some(w) = y.get(k) else {
-                        return Some(format!("{path}.{k}: missing on one side"));
-                    };
-                    if let Some(d) = first_difference(v, w, &format!("{path}.{k}")) {
-                        return Some(d);
-                    }
-                }
-                (x.len() != y.len()).then(|| format!("{path}: key sets differ"))
-            }
-            (Json::Array(x), Json::Array(y)) => {
-                for (i, (v, w)) in x.iter().zip(y).enumerate() {
-                    if let Some(d) = first_difference(v, w, &format!("{path}[{i}]")) {
-                        return Some(d);
-                    }
-                }
-                (x.len() != y.len()).then(|| format!("{path}: {} vs {} items", x.len(), y.len()))
-            }
-            _ => (a != b).then(|| format!("{path}: expected {a}, actual {b}")),
-        }
-    }
-
     #[test]
     fn every_protocol_reads_like_cpython() {
         let exp = expected();
@@ -1352,7 +1325,7 @@ mod tests {
         let (mut ok, mut refused) = (0, 0);
         for case in cases {
             let name = case["name"].as_str().unwrap();
-            let data = hex_bytes(case["hex"].as_str().unwrap());
+            let data = test_common::hex(case["hex"].as_str().unwrap());
             match (case.get("expected"), parse(&data)) {
                 (Some(want), Ok(p)) => {
                     let got = canon(&p, p.root(), &mut Vec::new());

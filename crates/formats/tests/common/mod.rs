@@ -80,3 +80,35 @@ pub fn copy_dir(src: &Path, dst: &Path) {
         }
     }
 }
+
+/// First differing path between two JSON trees, for readable failures.
+pub fn first_difference(
+    want: &serde_json::Value,
+    got: &serde_json::Value,
+    path: &str,
+) -> Option<String> {
+    use serde_json::Value as Json;
+    match (want, got) {
+        (Json::Object(x), Json::Object(y)) => {
+            for (k, v) in x {
+                let Some(w) = y.get(k) else {
+                    return Some(format!("{path}.{k}: missing"));
+                };
+                if let Some(d) = first_difference(v, w, &format!("{path}.{k}")) {
+                    return Some(d);
+                }
+            }
+            (x.len() != y.len()).then(|| format!("{path}: key sets differ"))
+        }
+        (Json::Array(x), Json::Array(y)) => {
+            for (i, (v, w)) in x.iter().zip(y).enumerate() {
+                if let Some(d) = first_difference(v, w, &format!("{path}[{i}]")) {
+                    return Some(d);
+                }
+            }
+            (x.len() != y.len())
+                .then(|| format!("{path}: expected {} items, actual {}", x.len(), y.len()))
+        }
+        _ => (want != got).then(|| format!("{path}: expected {want}, actual {got}")),
+    }
+}
