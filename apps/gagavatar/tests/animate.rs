@@ -231,21 +231,12 @@ fn export_ply_holds_the_dumped_gaussians() {
     );
     ok(&strs(&args));
     let dump = f.s("dump.safetensors");
-    ok(&[
+    let args = avatar_cmd(
+        f,
         "dump",
-        "--ckpt",
-        &f.s("tiny.safetensors"),
-        "--flame",
-        &f.s("flame.safetensors"),
-        "--source",
-        &f.s("src.png"),
-        "--source-record",
-        &f.s("src.json"),
-        "--target-record",
-        &f.s("expr.json"),
-        "-o",
-        &dump,
-    ]);
+        &["--target-record", &f.s("expr.json"), "-o", &dump],
+    );
+    ok(&strs(&args));
     let scene = GaussianScene::load(Path::new(&ply)).unwrap();
     let t = candle_core::safetensors::load(&dump, &candle_core::Device::Cpu).unwrap();
     let get = |k: &str| -> Vec<f32> { t[k].flatten_all().unwrap().to_vec1().unwrap() };

@@ -96,36 +96,35 @@ fn record_errors_name_the_file_and_a_photo_is_not_a_record() {
     bad["expcode"] = serde_json::json!("oops");
     std::fs::write(f.path("bad_params.json"), bad.to_string()).unwrap();
 
-    let line = fails(&[
-        "flame",
-        "mesh",
-        "--flame",
-        "synthetic",
-        "--params",
-        &f.s("bad_params.json"),
-        "-o",
-        &f.s("m.obj"),
-    ]);
+    let mesh_error = |params: &str| {
+        fails(&[
+            "flame",
+            "mesh",
+            "--flame",
+            "synthetic",
+            "--params",
+            &f.s(params),
+            "-o",
+            &f.s("m.obj"),
+        ])
+    };
+    let line = mesh_error("bad_params.json");
     assert!(
         line.contains("bad_params.json") && line.contains("expcode"),
         "{line}"
     );
 
-    let line = fails(&[
+    let args = f.avatar_args(
         "dump",
-        "--ckpt",
-        &f.s("tiny.safetensors"),
-        "--flame",
-        &f.s("flame.safetensors"),
-        "--source",
-        &f.s("src.png"),
-        "--source-record",
-        &f.s("src.json"),
-        "--target-record",
-        &f.s("bad_params.json"),
-        "-o",
-        &f.s("d.safetensors"),
-    ]);
+        &[],
+        &[
+            "--target-record",
+            &f.s("bad_params.json"),
+            "-o",
+            &f.s("d.safetensors"),
+        ],
+    );
+    let line = fails(&strs(&args));
     assert!(
         line.contains("bad_params.json") && line.contains("expcode"),
         "{line}"
@@ -149,16 +148,7 @@ fn record_errors_name_the_file_and_a_photo_is_not_a_record() {
         assert!(!line.contains("opcode"), "{line}");
     }
     // `flame mesh --params` given a photo says so too.
-    let line = fails(&[
-        "flame",
-        "mesh",
-        "--flame",
-        "synthetic",
-        "--params",
-        &f.s("photo.jpg"),
-        "-o",
-        &f.s("m.obj"),
-    ]);
+    let line = mesh_error("photo.jpg");
     assert!(
         line.contains("photo.jpg") && line.contains("JPEG image"),
         "{line}"
