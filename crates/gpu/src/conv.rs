@@ -2,13 +2,20 @@
 //! StyleUNet needs), x2 resizes, sums, linear layers, the mapping network's normalisation and
 //! the modulated convolutions' demodulation.
 
+use std::sync::LazyLock;
+
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
 use crate::kernel::{linear_grid, Bind, Grid, Params, Step};
 use crate::tuning::{ConvTile, Tuning};
 
-const CONV: &str = include_str!("shaders/conv.wgsl");
-const CONV_FINISH: &str = include_str!("shaders/conv_finish.wgsl");
+/// Both convolution shaders end in one shared epilogue.
+fn with_epilogue(src: &str) -> String {
+    format!("{src}\n{}", include_str!("shaders/conv_epilogue.wgsl"))
+}
+static CONV: LazyLock<String> = LazyLock::new(|| with_epilogue(include_str!("shaders/conv.wgsl")));
+static CONV_FINISH: LazyLock<String> =
+    LazyLock::new(|| with_epilogue(include_str!("shaders/conv_finish.wgsl")));
 const RESIZE: &str = include_str!("shaders/resize.wgsl");
 const ADD: &str = include_str!("shaders/add.wgsl");
 const LINEAR: &str = include_str!("shaders/linear.wgsl");
@@ -238,7 +245,7 @@ impl Ops<'_> {
             c.cout.div_ceil(t.bm as usize) as u32,
         ];
         if p.split == 0 {
-            let k = self.gpu.kernel("conv", CONV, &consts(0), &binds)?;
+            let k = self.gpu.kernel("conv", &CONV, &consts(0), &binds)?;
             let u = self.gpu.uniform("conv", &params(1));
             let g = self.gpu.bind(
                 &k,
@@ -260,7 +267,7 @@ impl Ops<'_> {
         }
         let k = self
             .gpu
-            .kernel("conv_split", CONV, &consts(p.split), &binds)?;
+            .kernel("conv_split", &CONV, &consts(p.split), &binds)?;
         let u = self.gpu.uniform("conv split", &params(p.slices));
         let g = self.gpu.bind(
             &k,
@@ -288,7 +295,7 @@ impl Ops<'_> {
             .collect();
         let kf = self
             .gpu
-            .kernel("conv_finish", CONV_FINISH, &finish_consts, &fb)?;
+            .kernel("conv_finish", &CONV_FINISH, &finish_consts, &fb)?;
         let gf = self.gpu.bind(
             &kf,
             &[

@@ -7,7 +7,7 @@
 // style), per-output-channel scale (its demodulation x gain), then
 //   v = acc * out_scale + bias + noise_weight * noise; lrelu; + residual; * sft_scale +
 //   sft_shift; sigmoid
-// in the CPU path's order. With split-K (SPLIT > 0) a workgroup covers only `SPLIT` of the
+// in the CPU path's order (`conv_epilogue.wgsl`, appended to this source). With split-K (SPLIT > 0) a workgroup covers only `SPLIT` of the
 // depth and writes raw partial sums; `conv_finish.wgsl` adds them and applies the epilogue.
 
 struct P {
@@ -90,33 +90,11 @@ fn emit(co: u32, pix: u32, acc: f32, slice: u32) {
     if (co >= p.cout || pix >= hw) {
         return;
     }
-    var v = acc;
     if (SPLIT > 0u) {
-        y[(slice * p.cout + co) * hw + pix] = v;
+        y[(slice * p.cout + co) * hw + pix] = acc;
         return;
     }
-    if (OUT_SCALE) {
-        v = v * vecs[p.outsc_off + co];
-    }
-    if (BIAS) {
-        v = v + vecs[p.bias_off + co];
-    }
-    if (NOISE) {
-        v = v + p.noise_w * aux[p.aux_off + pix];
-    }
-    if (LRELU) {
-        v = lrelu(v);
-    }
-    if (RESID) {
-        v = v + aux[p.aux_off + co * hw + pix];
-    }
-    if (SFT) {
-        v = v * sft[p.sft_scale_off + co * hw + pix] + sft[p.sft_shift_off + co * hw + pix];
-    }
-    if (SIGMOID) {
-        v = 1.0 / (1.0 + exp(-v));
-    }
-    y[p.out_off + co * hw + pix] = v;
+    y[p.out_off + co * hw + pix] = epilogue(acc, co, pix, hw);
 }
 
 @compute @workgroup_size(THREADS)

@@ -49,26 +49,5 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     for (var s = 0u; s < p.slices; s = s + 1u) {
         v = v + part[s * p.cout * hw + i];
     }
-    if (OUT_SCALE) {
-        v = v * vecs[p.outsc_off + co];
-    }
-    if (BIAS) {
-        v = v + vecs[p.bias_off + co];
-    }
-    if (NOISE) {
-        v = v + p.noise_w * aux[p.aux_off + pix];
-    }
-    if (LRELU) {
-        v = lrelu(v);
-    }
-    if (RESID) {
-        v = v + aux[p.aux_off + co * hw + pix];
-    }
-    if (SFT) {
-        v = v * sft[p.sft_scale_off + co * hw + pix] + sft[p.sft_shift_off + co * hw + pix];
-    }
-    if (SIGMOID) {
-        v = 1.0 / (1.0 + exp(-v));
-    }
-    y[p.out_off + i] = v;
+    y[p.out_off + i] = epilogue(v, co, pix, hw);
 }
