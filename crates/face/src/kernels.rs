@@ -1023,14 +1023,10 @@ mod tests {
             .collect()
     }
 
-    /// Worst absolute difference, with its index.
+    /// Worst absolute difference, with its index (a NaN is an infinite difference).
     fn worst(a: &[f32], b: &[f32]) -> (usize, f32) {
-        assert_eq!(a.len(), b.len());
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| (x - y).abs())
-            .enumerate()
-            .fold((0, 0.0), |m, (i, d)| if d > m.1 { (i, d) } else { m })
+        let (i, d) = gagavatar_testkit::worst_abs_diff(a, b);
+        (i, d as f32)
     }
 
     /// f32 sums of a few hundred terms of size ~1 against an f64 reference.
@@ -1202,7 +1198,13 @@ mod tests {
     fn avx512_and_portable_kernels_agree() {
         #[cfg(target_arch = "x86_64")]
         {
-            if crate::simd::level() != crate::simd::Level::Avx512 {
+            let avx512 = crate::simd::level() == crate::simd::Level::Avx512;
+            if !gagavatar_testkit::optional_path(
+                "avx512_and_portable_kernels_agree",
+                avx512,
+                "the AVX-512 kernels are off (no AVX-512F, or GAGAVATAR_NO_AVX512)",
+                gagavatar_testkit::REQUIRE_AVX512,
+            ) {
                 return;
             }
             use crate::simd::{Arr, Zmm};

@@ -11,7 +11,15 @@ pub const REQUIRE_ENV: &str = "GAGAVATAR_REQUIRE_GPU_TESTS";
 /// printed reason when there is none and the environment does not require one.
 pub fn gpu() -> Option<&'static Gpu> {
     static GPU: OnceLock<Result<Gpu, String>> = OnceLock::new();
-    match GPU.get_or_init(|| Gpu::new(AdapterPolicy::AllowCpu).map_err(|e| e.to_string())) {
+    let opened = GPU.get_or_init(|| {
+        let g = Gpu::new(AdapterPolicy::AllowCpu).map_err(|e| e.to_string());
+        if let Ok(g) = &g {
+            // Once per test binary: the log says which device the GPU tests covered.
+            eprintln!("GPU tests on {}", g.describe());
+        }
+        g
+    });
+    match opened {
         Ok(g) => Some(g),
         Err(e) => {
             if std::env::var(REQUIRE_ENV).is_ok_and(|v| v != "0") {

@@ -526,7 +526,7 @@ fn var_updates_reach_the_next_forward() {
     let target = scene.run(&other, noise);
     let d = to_vec_f64(&(&before.fine - &target.fine).unwrap().abs().unwrap())
         .into_iter()
-        .fold(0.0, f64::max);
+        .fold(0.0, gagavatar_testkit::max_or_nan);
     assert!(
         d > 1e-3,
         "the two seeds give nearly the same image ({d:.2e})"
@@ -550,7 +550,7 @@ fn var_updates_reach_the_next_forward() {
     let changed = scene.run(&model, noise);
     let d = to_vec_f64(&(&changed.fine - &after.fine).unwrap().abs().unwrap())
         .into_iter()
-        .fold(0.0, f64::max);
+        .fold(0.0, gagavatar_testkit::max_or_nan);
     assert!(d > 1e-6, "scaling {k} changed the image by only {d:.2e}");
 }
 
@@ -566,7 +566,7 @@ fn seeded_noise_is_reproducible_per_sample() {
     let c = pair.run(&model, Noise::Seeded(6));
     let d = to_vec_f64(&(&a.fine - &c.fine).unwrap().abs().unwrap())
         .into_iter()
-        .fold(0.0, f64::max);
+        .fold(0.0, gagavatar_testkit::max_or_nan);
     assert!(d > 1e-4, "another seed changes the image by only {d:.2e}");
     // Sample 0 draws the same noise alone or in a batch.
     let single = one.run(&model, Noise::Seeded(5));
@@ -646,7 +646,7 @@ fn ablations_change_the_output_as_documented() {
         .unwrap(),
     )
     .into_iter()
-    .fold(0.0, f64::max);
+    .fold(0.0, gagavatar_testkit::max_or_nan);
     assert!(
         d > 1e-4,
         "F_id changes the expression colours by only {d:.2e}"

@@ -3,7 +3,7 @@
 //! GEMM for everything else. Other devices and dtypes fall back to candle's `conv2d`.
 
 pub(crate) mod elem;
-pub use elem::limit_simd;
+pub use elem::{active_simd_level, limit_simd};
 mod geom;
 pub use geom::Conv2dSpec;
 use geom::Geom;

@@ -662,7 +662,7 @@ mod tests {
     /// ties, signed zeros and the exp's clamping range.
     #[test]
     fn avx512_lanes_equal_array_lanes() {
-        if !std::arch::is_x86_feature_detected!("avx512f") {
+        if !gagavatar_testkit::avx512_or_skip("avx512_lanes_equal_array_lanes") {
             return;
         }
         let mut rng = Rng::new(3);
@@ -757,7 +757,7 @@ mod tests {
     /// opacity) and beyond.
     #[test]
     fn avx512_ln_bound_is_close() {
-        if !std::arch::is_x86_feature_detected!("avx512f") {
+        if !gagavatar_testkit::avx512_or_skip("avx512_ln_bound_is_close") {
             return;
         }
         // Relative error allowed for a bound that is then inflated by 2%.
@@ -782,7 +782,7 @@ mod tests {
     /// equal to and longer than a vector, for every block bit.
     #[test]
     fn avx512_positions_equal_array_positions() {
-        if !std::arch::is_x86_feature_detected!("avx512f") {
+        if !gagavatar_testkit::avx512_or_skip("avx512_positions_equal_array_positions") {
             return;
         }
         let mut rng = Rng::new(11);

@@ -1103,7 +1103,7 @@ mod tests {
     fn lanes_projection_equals_one_by_one() {
         check_lanes::<P16<f32>>("array lanes");
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx512f") {
+        if gagavatar_testkit::avx512_or_skip("lanes_projection_equals_one_by_one (AVX-512 half)") {
             // SAFETY: the CPU has AVX-512F.
             unsafe { check_avx512() };
         }

@@ -1134,7 +1134,7 @@ mod tests {
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn avx512_block_masks_equal_scalar_ones() {
-        if !std::arch::is_x86_feature_detected!("avx512f") {
+        if !gagavatar_testkit::avx512_or_skip("avx512_block_masks_equal_scalar_ones") {
             return;
         }
         let mut rng = crate::rng::Rng::new(21);

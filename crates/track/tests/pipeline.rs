@@ -79,7 +79,7 @@ fn photo_is_tracked_in_frame_pixels() {
     assert_eq!(f.image_size, [W, H]);
     let worst = (0..N_LANDMARKS)
         .map(|k| dist(f.reprojected[k].unwrap(), clean[k]))
-        .fold(0.0, f64::max);
+        .fold(0.0, gagavatar_testkit::max_or_nan);
     // 1 px at 512 is about 0.7 frame px here; the exact-landmark fit is within a crop pixel.
     assert!(worst <= 1.0, "reprojection {worst:.3} frame px");
     let det = f.detected.as_ref().unwrap();

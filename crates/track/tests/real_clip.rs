@@ -94,7 +94,10 @@ fn astronaut_clip_is_tracked_steadily_and_on_the_face() {
         })
         .collect();
     let (sd_det, sd_fit) = (second_difference(&detected), second_difference(&fitted));
-    let worst = errors.iter().cloned().fold(0.0, f64::max);
+    let worst = errors
+        .iter()
+        .cloned()
+        .fold(0.0, gagavatar_testkit::max_or_nan);
     let mut sorted = errors.clone();
     sorted.sort_by(f64::total_cmp);
     println!(

@@ -193,8 +193,7 @@ fn av1() {
     if !ffmpeg_or_skip("av1") {
         return;
     }
-    let Some(enc) = first_encoder(&["libsvtav1", "libaom-av1", "librav1e"]) else {
-        eprintln!("SKIPPED av1: this ffmpeg has no AV1 encoder (libsvtav1, libaom-av1, librav1e)");
+    let Some(enc) = first_encoder("av1", &["libsvtav1", "libaom-av1", "librav1e"]) else {
         return;
     };
     let speed: &[&str] = match enc {

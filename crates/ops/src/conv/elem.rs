@@ -163,6 +163,18 @@ pub(crate) fn simd_level() -> SimdLevel {
     SimdLevel::Portable
 }
 
+/// The level our own loops run at now, as [`limit_simd`] counts them (0 portable, 1 AVX2+FMA,
+/// 2 AVX-512): tests read it to know which level a comparison really exercised.
+pub fn active_simd_level() -> u8 {
+    match simd_level() {
+        SimdLevel::Portable => 0,
+        #[cfg(target_arch = "x86_64")]
+        SimdLevel::Avx2 => 1,
+        #[cfg(target_arch = "x86_64")]
+        SimdLevel::Avx512 => 2,
+    }
+}
+
 static SIMD_CAP: std::sync::atomic::AtomicU8 = std::sync::atomic::AtomicU8::new(u8::MAX);
 
 /// Caps the instruction sets our own loops use: 0 portable, 1 AVX2+FMA, 2 (or more) AVX-512.

@@ -102,7 +102,7 @@ pub fn max_dist(a: &[[f64; 2]], b: &[[f64; 2]]) -> f64 {
     a.iter()
         .zip(b)
         .map(|(p, q)| ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2)).sqrt())
-        .fold(0.0, f64::max)
+        .fold(0.0, gagavatar_testkit::max_or_nan)
 }
 
 pub fn median(v: &[f64]) -> f64 {
@@ -112,7 +112,7 @@ pub fn median(v: &[f64]) -> f64 {
 }
 
 pub fn max(v: &[f64]) -> f64 {
-    v.iter().cloned().fold(0.0, f64::max)
+    v.iter().cloned().fold(0.0, gagavatar_testkit::max_or_nan)
 }
 
 pub struct TempDir(pub std::path::PathBuf);

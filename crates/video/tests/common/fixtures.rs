@@ -1,8 +1,9 @@
 //! Test clips made with ffmpeg at test time (no binary files in the repository), and ffmpeg's
 //! own answers to compare with: `ffprobe -show_frames` timestamps and a PNG decode.
 //!
-//! Without ffmpeg the tests that need it skip with a printed reason, unless
-//! `GAGAVATAR_REQUIRE_FFMPEG` is set (`.ci/run` sets it), which turns the skip into a failure.
+//! Without ffmpeg, or without an encoder a test needs, the test skips with a printed reason,
+//! unless `GAGAVATAR_REQUIRE_FFMPEG` is set (`.ci/run` sets it), which turns the skip into a
+//! failure.
 #![allow(dead_code)]
 
 use std::path::{Path, PathBuf};
@@ -14,20 +15,12 @@ use image::RgbImage;
 /// True when ffmpeg and ffprobe are on PATH; otherwise prints why `test` is skipped (or fails
 /// it when the run requires ffmpeg).
 pub fn ffmpeg_or_skip(test: &str) -> bool {
-    if gagavatar_video::read::find_ffmpeg(None).is_some() {
-        return true;
-    }
-    if std::env::var_os("GAGAVATAR_REQUIRE_FFMPEG").is_some() {
-        panic!(
-            "{test}: ffmpeg/ffprobe are not on PATH, and GAGAVATAR_REQUIRE_FFMPEG is set \
-             (install ffmpeg: apt-get install ffmpeg)"
-        );
-    }
-    eprintln!(
-        "SKIPPED {test}: ffmpeg/ffprobe are not on PATH (install ffmpeg to run it; \
-         GAGAVATAR_REQUIRE_FFMPEG=1 makes this a failure)"
-    );
-    false
+    gagavatar_testkit::optional_path(
+        test,
+        gagavatar_video::read::find_ffmpeg(None).is_some(),
+        "ffmpeg/ffprobe are not on PATH (apt-get install ffmpeg)",
+        gagavatar_testkit::REQUIRE_FFMPEG,
+    )
 }
 
 pub fn ffmpeg_version() -> (u32, u32) {
@@ -50,13 +43,15 @@ pub fn has_encoder(name: &str) -> bool {
         .any(|l| l.split_whitespace().nth(1) == Some(name))
 }
 
-/// Whether this ffmpeg can encode with `name`; prints why `test` is skipped when not.
+/// Whether this ffmpeg can encode with `name`; prints why `test` is skipped when not, or fails
+/// it when the run requires ffmpeg (a required ffmpeg must have every encoder the tests use).
 pub fn encoder_or_skip(test: &str, name: &str) -> bool {
-    if has_encoder(name) {
-        return true;
-    }
-    eprintln!("SKIPPED {test}: this ffmpeg build has no {name} encoder");
-    false
+    gagavatar_testkit::optional_path(
+        test,
+        has_encoder(name),
+        &format!("this ffmpeg build has no {name} encoder"),
+        gagavatar_testkit::REQUIRE_FFMPEG,
+    )
 }
 
 /// ffmpeg with every one of `encoders`, or a printed reason to skip `test`.
@@ -64,9 +59,17 @@ pub fn ffmpeg_with(test: &str, encoders: &[&str]) -> bool {
     ffmpeg_or_skip(test) && encoders.iter().all(|e| encoder_or_skip(test, e))
 }
 
-/// The first of `names` this ffmpeg can encode with.
-pub fn first_encoder<'a>(names: &[&'a str]) -> Option<&'a str> {
-    names.iter().copied().find(|n| has_encoder(n))
+/// The first of `names` this ffmpeg can encode with; `None` (with a printed reason) when it has
+/// none of them, or a failure when the run requires ffmpeg.
+pub fn first_encoder<'a>(test: &str, names: &[&'a str]) -> Option<&'a str> {
+    let found = names.iter().copied().find(|n| has_encoder(n));
+    gagavatar_testkit::optional_path(
+        test,
+        found.is_some(),
+        &format!("this ffmpeg build has none of the encoders {names:?}"),
+        gagavatar_testkit::REQUIRE_FFMPEG,
+    );
+    found
 }
 
 /// Frame timing passed through untouched (the option's name changed in ffmpeg 5.1).
