@@ -299,18 +299,48 @@ fn export_ply_holds_the_dumped_gaussians() {
 }
 
 #[test]
-fn wrong_image_size_is_resized_with_a_notice_and_fresh_noise_runs() {
+fn wrong_image_size_is_resized_with_a_notice() {
     let f = fixture();
-    let mut args = avatar_cmd(
-        f,
-        "orbit",
-        &["--frames", "2", "--fresh-noise", "-o", &f.s("resized.gif")],
-    );
+    let mut args = avatar_cmd(f, "orbit", &["--frames", "2", "-o", &f.s("resized.gif")]);
     let i = args.iter().position(|a| a == "--source").unwrap();
     args[i + 1] = f.s("src_100x80.png");
     let res = ok(&strs(&args));
     let log = String::from_utf8_lossy(&res.stderr);
     assert!(log.contains("resizing"), "no resize notice:\n{log}");
+}
+
+/// `--fresh-noise` draws the renderer's noise anew: two runs differ, while two runs with the
+/// fixed buffers are identical.
+#[test]
+fn fresh_noise_changes_the_frames_and_fixed_noise_repeats_them() {
+    let f = fixture();
+    let render = |tag: &str, fresh: bool| -> image::RgbImage {
+        let dir = f.s(&format!("noise_{tag}/"));
+        let mut extra = vec!["--frames", "1", "--no-watermark", "-o", &dir];
+        if fresh {
+            extra.push("--fresh-noise");
+        }
+        ok(&strs(&avatar_cmd(f, "orbit", &extra)));
+        image::open(Path::new(&dir).join("frame_00000.png"))
+            .unwrap()
+            .to_rgb8()
+    };
+    assert!(
+        render("fixed_1", false) == render("fixed_2", false),
+        "fixed noise: two runs differ"
+    );
+    let (a, b) = (render("fresh_1", true), render("fresh_2", true));
+    let changed = a
+        .as_raw()
+        .iter()
+        .zip(b.as_raw())
+        .filter(|(x, y)| x != y)
+        .count();
+    assert!(changed > 0, "--fresh-noise: two runs gave the same frame");
+    eprintln!(
+        "--fresh-noise: {changed} of {} channel values changed",
+        a.as_raw().len()
+    );
 }
 
 /// Runs a command that must fail: non-zero exit, an `error:` line naming `needle`, no panic, and
@@ -439,28 +469,82 @@ fn bad_inputs_fail_cleanly() {
     fails(&a, &bad, "no/such/dir");
 }
 
+/// The release's record `key` of `release_small/expected.json` (float32 values stored as
+/// little-endian hex, CPython's view of `optim.pkl`) as a JSON record with the same numbers.
+fn expected_record_json(key: &str) -> serde_json::Value {
+    let path = format!("{}/expected.json", release_small());
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    let rec = &v["records"][key];
+    let values = |field: &str| -> Vec<f64> {
+        let hex = rec[field]["hex"].as_str().unwrap();
+        let bytes: Vec<u8> = (0..hex.len())
+            .step_by(2)
+            .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
+            .collect();
+        bytes
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64)
+            .collect()
+    };
+    let tm = values("transform_matrix");
+    serde_json::json!({
+        "shapecode": values("shapecode"),
+        "expcode": values("expcode"),
+        "posecode": values("posecode"),
+        "eyecode": values("eyecode"),
+        "transform_matrix": tm.chunks(4).map(|r| r.to_vec()).collect::<Vec<_>>(),
+    })
+}
+
+/// PNG frames of `reenact` (no watermark) into `dir`, with the source record replaced.
+fn reenact_pngs(f: &Fixture, record: &str, extra: &[&str], dir: &str) -> Vec<image::RgbImage> {
+    let driver = f.s("driver.json");
+    let mut tail = vec![
+        "--driver",
+        driver.as_str(),
+        "--max-frames",
+        "2",
+        "--no-watermark",
+        "-o",
+        dir,
+    ];
+    tail.extend_from_slice(extra);
+    let args = f.avatar_args("reenact", &[("--source-record", record.to_string())], &tail);
+    ok(&strs(&args));
+    (0..2)
+        .map(|k| {
+            image::open(Path::new(dir).join(format!("frame_{k:05}.png")))
+                .unwrap()
+                .to_rgb8()
+        })
+        .collect()
+}
+
 #[test]
 fn reenact_with_a_release_pkl_source_record() {
     let f = fixture();
-    let out = f.s("pkl_source.gif");
-    let mut args = avatar_cmd(
-        f,
-        "reenact",
-        &[
-            "--driver",
-            &f.s("driver.json"),
-            "--max-frames",
-            "2",
-            "--source-key",
-            "spk_a_1",
-            "-o",
-            &out,
-        ],
+    let pkl = format!("{}/optim.pkl", release_small());
+    // The pickle's `spk_a_1` gives the very frames its numbers give as a JSON record...
+    let from_pkl = reenact_pngs(f, &pkl, &["--source-key", "spk_a_1"], &f.s("pkl_a1/"));
+    std::fs::write(
+        f.path("spk_a_1.json"),
+        expected_record_json("spk_a_1").to_string(),
+    )
+    .unwrap();
+    let from_json = reenact_pngs(f, &f.s("spk_a_1.json"), &[], &f.s("json_a1/"));
+    for (k, (a, b)) in from_pkl.iter().zip(&from_json).enumerate() {
+        assert!(
+            a == b,
+            "frame {k}: the .pkl record and its JSON copy render differently"
+        );
+    }
+    // ...and another key of the same pickle gives other frames: the key picks the record.
+    let other = reenact_pngs(f, &pkl, &["--source-key", "spk_a_0"], &f.s("pkl_a0/"));
+    assert!(
+        other[0] != from_pkl[0],
+        "spk_a_0 and spk_a_1 render the same frame"
     );
-    let i = args.iter().position(|a| a == "--source-record").unwrap();
-    args[i + 1] = format!("{}/optim.pkl", release_small());
-    ok(&strs(&args));
-    assert!(Path::new(&out).is_file());
 }
 
 #[test]

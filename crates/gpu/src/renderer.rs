@@ -662,9 +662,15 @@ pub(crate) mod tests {
     use gagavatar_splat::testscene::Rng;
     use std::collections::HashMap;
 
-    /// The fine image's parity bound (the issue's): ~40 f32 convolutions summed in other
-    /// orders than the CPU's, then a sigmoid; measured values are printed by the tests.
-    pub const FINE_TOL: f64 = 1e-3;
+    /// The fine image's parity bound at the tiny preset: ~40 f32 convolutions summed in other
+    /// orders than the CPU's, then a sigmoid. Measured on lavapipe: at most 6.0e-7 (renderer
+    /// tests, every tuning) and 4.8e-7 (drive tests); the bound leaves ~16x for another
+    /// driver's summation order. The tests print what they measure.
+    pub const FINE_TOL: f64 = 1e-5;
+    /// The same at release size (512x512, channels up to 512: fan-ins ~20x the tiny ones, so
+    /// the reordered f32 sums drift further). Measured on lavapipe: 1.09e-4
+    /// (`release_drive_matches_the_cpu`); the bound leaves ~4.5x.
+    pub const RELEASE_FINE_TOL: f64 = 5e-4;
 
     /// The CPU renderer of `cfg` with seeded weights (the same values as
     /// `gagavatar init-weights` writes for those keys).

@@ -326,8 +326,50 @@ mod tests {
         let from = [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]];
         let to = [[0.0, 0.0], [-1.0, 0.0], [0.0, 1.0]];
         let a = similarity_transform(&from, &to);
-        let det = a.m[0][0] * a.m[1][1] - a.m[0][1] * a.m[1][0];
-        assert!(det >= 0.0, "det {det}");
+        // No proper similarity maps a mirror image exactly. Worked by hand with the centred
+        // points x_i, y_i: scale*cos = sum(x.y) / sum|x|^2 = 0 and scale*sin = sum(x cross y) /
+        // sum|x|^2 = (-2/3) / (4/3) = -1/2, i.e. a quarter turn clockwise at half scale, and
+        // b = mean(to) - M mean(from) = (-1/2, 1/2).
+        let want_m = [[0.0, 0.5], [-0.5, 0.0]];
+        let want_b = [-0.5, 0.5];
+        for (i, (row, want_row)) in a.m.iter().zip(&want_m).enumerate() {
+            for (j, (got, w)) in row.iter().zip(want_row).enumerate() {
+                assert!(
+                    (got - w).abs() < TOL,
+                    "m[{i}][{j}]: expected {w}, got {got}"
+                );
+            }
+            assert!(
+                (a.b[i] - want_b[i]).abs() < TOL,
+                "b[{i}]: expected {}, got {}",
+                want_b[i],
+                a.b[i]
+            );
+        }
+        // And it is the least-squares optimum: every nearby proper similarity does worse.
+        let cost = |m: [[f64; 2]; 2], b: [f64; 2]| -> f64 {
+            from.iter()
+                .zip(&to)
+                .map(|(p, q)| {
+                    let x = m[0][0] * p[0] + m[0][1] * p[1] + b[0] - q[0];
+                    let y = m[1][0] * p[0] + m[1][1] * p[1] + b[1] - q[1];
+                    x * x + y * y
+                })
+                .sum()
+        };
+        let best = cost(a.m, a.b);
+        for (dc, ds, dx, dy) in [
+            (0.01, 0.0, 0.0, 0.0),
+            (-0.01, 0.0, 0.0, 0.0),
+            (0.0, 0.01, 0.0, 0.0),
+            (0.0, -0.01, 0.0, 0.0),
+            (0.0, 0.0, 0.01, 0.0),
+            (0.0, 0.0, 0.0, -0.01),
+        ] {
+            let (c, s) = (a.m[0][0] + dc, a.m[1][0] + ds);
+            let other = cost([[c, -s], [s, c]], [a.b[0] + dx, a.b[1] + dy]);
+            assert!(other > best, "({dc}, {ds}, {dx}, {dy}): {other} <= {best}");
+        }
     }
 
     #[test]
