@@ -1,13 +1,15 @@
-//! The CI fuzz smoke: every harness on its committed seeds, then on deterministic mutations of
-//! them (bit flips, byte sets, truncations, splices, duplicated and deleted spans, corrupted
-//! length fields) for a fixed time per target. Each case must return within
-//! [`CASE_TIME_LIMIT`] and allocate at most [`MEMORY_LIMIT`] bytes beyond what was live before
+//! The CI fuzz smoke: every harness on its committed seeds, then on a fixed number of
+//! deterministic mutations of them (bit flips, byte sets, truncations, splices, duplicated and
+//! deleted spans, corrupted length fields) per target, so every run tries the same inputs on any
+//! machine. Each case must allocate at most [`MEMORY_LIMIT`] bytes beyond what was live before
 //! it (a counting allocator measures it; allocations that would pass a hard ceiling are refused,
-//! which aborts the process with a message naming the case file). The case being run is kept
-//! in `target/fuzz-smoke/<target>.current`, so a crash, abort or hang can be replayed.
+//! which aborts the process with a message naming the case file), and must return at all: a
+//! case still running after [`HANG_LIMIT`] is a hang (a limit far above any real case, so a slow
+//! or busy machine never fails a correct run). The slowest case per target is printed. The case
+//! being run is kept in `target/fuzz-smoke/<target>.current`, so a crash, abort or hang can be
+//! replayed.
 //!
-//! `GAGAVATAR_FUZZ_SECONDS` sets the mutation time per target (default 8 s; 11 targets keep the
-//! whole smoke under 2 minutes on a 2-core machine).
+//! `GAGAVATAR_FUZZ_CASES` sets the mutations per target (default [`DEFAULT_CASES`]).
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::path::{Path, PathBuf};
@@ -22,8 +24,11 @@ const MEMORY_LIMIT: usize = 256 << 20;
 /// Allocations beyond this total are refused outright (the process aborts with a message), so a
 /// hostile size cannot take the machine down before the per-case check runs.
 const HARD_CEILING: usize = 1 << 30;
-/// A case slower than this is a hang.
-const CASE_TIME_LIMIT: Duration = Duration::from_secs(5);
+/// A case still running after this is a hang. The slowest real cases take well under a second
+/// here (the smoke prints them); this only has to tell "never returns" from "slow".
+const HANG_LIMIT: Duration = Duration::from_secs(60);
+/// Mutations per target: about 8 s a target on a 2-core machine, under 2 minutes for all.
+const DEFAULT_CASES: usize = 4000;
 /// Inputs the mutator grows to at most.
 const MAX_INPUT: usize = 1 << 20;
 
@@ -241,8 +246,8 @@ fn scratch() -> PathBuf {
     dir
 }
 
-/// What a worker reports per case: (milliseconds, peak bytes above the case's start).
-type Report = std::thread::Result<(u128, usize)>;
+/// What a worker reports per case: (time taken, peak bytes above the case's start).
+type Report = std::thread::Result<(Duration, usize)>;
 
 /// Runs cases on one worker thread so a hang can be detected from here.
 struct Runner {
@@ -267,7 +272,7 @@ impl Runner {
                     let r = std::panic::catch_unwind(|| f(&case));
                     let peak = PEAK.load(Ordering::Relaxed).saturating_sub(before);
                     drop(case);
-                    let _ = done_tx.send(r.map(|()| (t0.elapsed().as_millis(), peak)));
+                    let _ = done_tx.send(r.map(|()| (t0.elapsed(), peak)));
                 }
             })
             .unwrap();
@@ -280,8 +285,8 @@ impl Runner {
         }
     }
 
-    /// Runs one case; a failure message names the saved case file.
-    fn run(&self, case: &[u8], what: &str) -> Result<(), String> {
+    /// Runs one case and returns its time; a failure message names the saved case file.
+    fn run(&self, case: &[u8], what: &str) -> Result<Duration, String> {
         std::fs::write(&self.current, case).unwrap();
         self.jobs.send(case.to_vec()).unwrap();
         let saved = || {
@@ -289,7 +294,7 @@ impl Runner {
             std::fs::write(&p, case).unwrap();
             p.display().to_string()
         };
-        match self.done.recv_timeout(CASE_TIME_LIMIT) {
+        match self.done.recv_timeout(HANG_LIMIT) {
             Ok(Ok((_, peak))) if peak > MEMORY_LIMIT => Err(format!(
                 "{}: {what} allocated {} MB (limit {} MB); case saved to {}",
                 self.target,
@@ -297,7 +302,7 @@ impl Runner {
                 MEMORY_LIMIT >> 20,
                 saved()
             )),
-            Ok(Ok(_)) => Ok(()),
+            Ok(Ok((took, _))) => Ok(took),
             Ok(Err(_)) => Err(format!(
                 "{}: {what} panicked; case saved to {}",
                 self.target,
@@ -306,19 +311,18 @@ impl Runner {
             Err(_) => Err(format!(
                 "{}: {what} ran longer than {:?} (a hang); case saved to {}",
                 self.target,
-                CASE_TIME_LIMIT,
+                HANG_LIMIT,
                 saved()
             )),
         }
     }
 }
 
-fn budget() -> Duration {
-    let secs = std::env::var("GAGAVATAR_FUZZ_SECONDS")
+fn mutations_per_target() -> usize {
+    std::env::var("GAGAVATAR_FUZZ_CASES")
         .ok()
-        .and_then(|s| s.parse::<f64>().ok())
-        .unwrap_or(8.0);
-    Duration::from_secs_f64(secs.max(0.0))
+        .and_then(|s| s.parse::<usize>().ok())
+        .unwrap_or(DEFAULT_CASES)
 }
 
 #[test]
@@ -331,10 +335,13 @@ fn every_loader_survives_its_seeds_and_their_mutations() {
         let seeds = seeds(target);
         assert!(!seeds.is_empty(), "{target}: no seeds in corpus/{target}");
         let runner = Runner::new(target, f);
+        let t0 = Instant::now();
+        let mut slowest = Duration::ZERO;
         let mut cases = 0usize;
         for (name, data) in &seeds {
-            if let Err(e) = runner.run(data, &format!("seed {name}")) {
-                failures.push(e);
+            match runner.run(data, &format!("seed {name}")) {
+                Ok(took) => slowest = slowest.max(took),
+                Err(e) => failures.push(e),
             }
             if failures.iter().any(|e| e.contains("a hang")) {
                 break;
@@ -342,26 +349,35 @@ fn every_loader_survives_its_seeds_and_their_mutations() {
             cases += 1;
         }
         let mut rng = Rng(0x9E37_79B9_7F4A_7C15 ^ target.len() as u64);
-        let t0 = Instant::now();
-        let budget = budget();
-        while t0.elapsed() < budget && failures.len() < 20 {
+        for m in 0..mutations_per_target() {
+            if failures.len() >= 20 {
+                break;
+            }
             let a = &seeds[rng.below(seeds.len())].1;
             let b = &seeds[rng.below(seeds.len())].1;
             let case = mutate(&mut rng, a, b);
-            if let Err(e) = runner.run(&case, &format!("mutation {cases}")) {
-                // A hung worker cannot take more cases.
-                let hung = e.contains("a hang");
-                failures.push(e);
-                if hung {
-                    break;
+            match runner.run(&case, &format!("mutation {m}")) {
+                Ok(took) => slowest = slowest.max(took),
+                Err(e) => {
+                    // A hung worker cannot take more cases.
+                    let hung = e.contains("a hang");
+                    failures.push(e);
+                    if hung {
+                        break;
+                    }
                 }
             }
             cases += 1;
         }
-        summary.push(format!("{target}: {} seeds, {cases} cases", seeds.len()));
+        summary.push(format!(
+            "{target}: {} seeds, {cases} cases in {:.1} s, slowest {:.0} ms",
+            seeds.len(),
+            t0.elapsed().as_secs_f64(),
+            slowest.as_secs_f64() * 1e3
+        ));
     }
     let _ = std::panic::take_hook();
-    eprintln!("fuzz smoke: {}", summary.join("; "));
+    eprintln!("fuzz smoke:\n  {}", summary.join("\n  "));
     assert!(
         !REFUSED.load(Ordering::Relaxed),
         "an allocation passed the ceiling"

@@ -9,8 +9,9 @@ use common::{kill_mid_write, record, strs, Fixture};
 #[test]
 fn kill_9_during_reenact_leaves_no_video() {
     let f = Fixture::new("kill_reenact");
-    // A driver long enough that the kill lands while frames are being encoded.
-    let frames: Vec<_> = (0..200).map(|i| record(0.02 * i as f64)).collect();
+    // Several frames; the child pauses before its rename, so the kill lands inside the write
+    // however fast the frames come.
+    let frames: Vec<_> = (0..12).map(|i| record(0.1 * i as f64)).collect();
     let driver = f.path("driver.json");
     std::fs::write(
         &driver,
@@ -29,8 +30,8 @@ fn kill_9_during_reenact_leaves_no_video() {
                 &out.display().to_string(),
             ],
         );
-        // Some frames already written into the temporary file.
-        let k = kill_mid_write(&args, &out, 4096);
+        // The finished temporary waits before its rename (a 12-frame 64x64 mp4 is ~3 KB).
+        let k = kill_mid_write(&args, &out, 1);
         assert!(k.mid_write, "{name}: reenact finished before the kill");
         assert!(
             !out.exists(),
@@ -66,37 +67,17 @@ fn kill_9_during_export_ply_leaves_no_ply() {
     let f = Fixture::new("kill_ply");
     let out = f.path("avatar.ply");
     let args = f.avatar_args("export-ply", &[], &["-o", &out.display().to_string()]);
-    // The write (data, then fsync, then rename) is short: try until a kill lands inside it.
-    // When the command wins the race its output must be complete.
-    let mut caught = 0;
-    for attempt in 0..12 {
-        let _ = std::fs::remove_file(&out);
-        let k = kill_mid_write(&args, &out, 1);
-        if k.mid_write {
-            caught += 1;
-            assert!(
-                !out.exists(),
-                "attempt {attempt}: a partial .ply exists after kill -9"
-            );
-            for p in &k.leftovers {
-                assert!(p
-                    .file_name()
-                    .unwrap()
-                    .to_string_lossy()
-                    .starts_with(".avatar.ply."));
-                let _ = std::fs::remove_file(p);
-            }
-            if caught == 3 {
-                break;
-            }
-        } else if out.exists() {
-            let ply = gagavatar_formats::ply::read_ply(&out)
-                .unwrap_or_else(|e| panic!("attempt {attempt}: {e}"));
-            assert!(ply.rows > 1000 && ply.values.len() == ply.rows * ply.names.len());
-        }
+    // The whole .ply in its temporary, held before the rename: the kill lands there.
+    let k = kill_mid_write(&args, &out, 1);
+    assert!(k.mid_write, "export-ply finished before the kill");
+    assert!(!out.exists(), "a partial .ply exists after kill -9");
+    assert!(!k.leftovers.is_empty(), "no temp file seen");
+    for p in &k.leftovers {
+        let name = p.file_name().unwrap().to_string_lossy().into_owned();
+        assert!(name.starts_with(".avatar.ply."), "visible leftover {name}");
     }
-    assert!(
-        caught > 0,
-        "no kill landed during the .ply write in 12 attempts"
-    );
+    // The leftover does not stop the next run, whose output is complete.
+    common::ok(&strs(&args));
+    let ply = gagavatar_formats::ply::read_ply(&out).unwrap();
+    assert!(ply.rows > 1000 && ply.values.len() == ply.rows * ply.names.len());
 }

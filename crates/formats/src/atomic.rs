@@ -23,6 +23,27 @@ pub fn temp_sibling(path: &Path) -> PathBuf {
     dir.join(format!(".{name}.tmp{}.{n}", std::process::id()))
 }
 
+/// Names a pause, in milliseconds, between a finished temporary output and its rename into
+/// place. For kill tests only: with it, a `kill -9` lands inside the write on any machine
+/// instead of racing a rename that takes microseconds. Unset (the default) means no pause.
+pub const PAUSE_BEFORE_RENAME_ENV: &str = "GAGAVATAR_TEST_PAUSE_BEFORE_RENAME_MS";
+
+/// Sleeps for [`PAUSE_BEFORE_RENAME_ENV`] milliseconds (read once; no pause when unset or not
+/// a number). Every writer calls it just before renaming a finished temporary into place.
+pub fn pause_before_rename() {
+    use std::sync::OnceLock;
+    static PAUSE: OnceLock<u64> = OnceLock::new();
+    let ms = *PAUSE.get_or_init(|| {
+        std::env::var(PAUSE_BEFORE_RENAME_ENV)
+            .ok()
+            .and_then(|v| v.trim().parse().ok())
+            .unwrap_or(0)
+    });
+    if ms > 0 {
+        std::thread::sleep(std::time::Duration::from_millis(ms));
+    }
+}
+
 /// `write(tmp)` fills a temp sibling of `path` (see [`temp_sibling`]), which is then synced and
 /// renamed over `path`. On any failure the temp file is removed and `path` is left as it was.
 pub fn write_via_temp<E>(
@@ -37,7 +58,10 @@ pub fn write_via_temp<E>(
                 .and_then(|f| f.sync_all())
                 .map_err(&io_err)
         })
-        .and_then(|()| std::fs::rename(&tmp, path).map_err(&io_err));
+        .and_then(|()| {
+            pause_before_rename();
+            std::fs::rename(&tmp, path).map_err(&io_err)
+        });
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
@@ -57,6 +81,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FormatError> {
 /// name and deleted only after the new one is in place (a directory cannot be renamed over a
 /// non-empty one); if the second rename fails the old one is moved back.
 pub fn replace_dir(tmp: &Path, dir: &Path) -> std::io::Result<()> {
+    pause_before_rename();
     if !dir.exists() {
         return std::fs::rename(tmp, dir);
     }

@@ -47,6 +47,7 @@ impl TempPath {
 
     /// Renames the temporary over `target`.
     pub(crate) fn persist(mut self, target: &Path) -> Result<(), VideoError> {
+        gagavatar_formats::atomic::pause_before_rename();
         std::fs::rename(&self.path, target).map_err(|e| VideoError::io(target, e))?;
         self.armed = false;
         Ok(())

@@ -30,16 +30,22 @@ pub fn ok(args: &[&str]) -> Output {
 /// Runs a command that must fail; returns its last stderr line (the error), checking it is one
 /// clean `error:` line and not a panic.
 pub fn fails(args: &[&str]) -> String {
+    let log = fails_log(args);
+    log.lines().last().unwrap_or("").to_string()
+}
+
+/// Like [`fails`], but returns all of stderr.
+pub fn fails_log(args: &[&str]) -> String {
     let out = run(args);
     let log = String::from_utf8_lossy(&out.stderr).into_owned();
     assert!(!out.status.success(), "{args:?} succeeded:\n{log}");
     assert!(!log.contains("panicked"), "{args:?} panicked:\n{log}");
-    let last = log.lines().last().unwrap_or("").to_string();
+    let last = log.lines().last().unwrap_or("");
     assert!(
         last.starts_with("error: "),
         "{args:?}: no error line:\n{log}"
     );
-    last
+    log
 }
 
 /// A tracked-frame record as JSON, facing the camera.
@@ -160,13 +166,23 @@ pub struct Killed {
     pub leftovers: Vec<PathBuf>,
 }
 
+/// How long the child holds a finished temporary before renaming it (see
+/// `gagavatar_formats::atomic::PAUSE_BEFORE_RENAME_ENV`): far longer than the polling below
+/// needs to see it, so the kill always lands inside the write, whatever the machine's speed.
+const PAUSE_BEFORE_RENAME_MS: &str = "60000";
+
 /// Starts `gagavatar args`, waits until a temp sibling of `output` holds at least `min_bytes`,
 /// kills the process with SIGKILL (no handler runs, nothing is cleaned up) and reaps it. The
 /// caller checks that `output` does not exist. Reusable for every command that writes through
-/// the atomic temp-and-rename mechanism (reenact, orbit, export-ply, track, ...).
+/// the atomic temp-and-rename mechanism (reenact, orbit, export-ply, track, ...). The child
+/// pauses before each rename, so a finished temporary waits for the kill.
 pub fn kill_mid_write(args: &[String], output: &Path, min_bytes: u64) -> Killed {
     let mut child = Command::new(BIN)
         .args(args)
+        .env(
+            gagavatar_formats::atomic::PAUSE_BEFORE_RENAME_ENV,
+            PAUSE_BEFORE_RENAME_MS,
+        )
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
