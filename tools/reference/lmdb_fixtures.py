@@ -17,7 +17,7 @@ Fixtures (in `crates/formats/tests/data/`):
 
 Regenerate (from the repository root):  python3 tools/reference/lmdb_fixtures.py
 
-Check an environment written by our writer (the Rust test `writer_output_for_python` writes one
+Check an environment written by our writer (the Rust test `written_environments_read_back` in `crates/formats/tests/lmdb.rs` writes one
 to `$GAGAVATAR_LMDB_OUT` when that variable is set):
 
     python3 tools/reference/lmdb_fixtures.py --check DIR [--count N]

@@ -25,7 +25,7 @@ Usage:
 
 Sample folders for it (synthetic heads, photo and video):
     GAGAVATAR_TRACK_SAMPLE_DIR=/tmp/track_samples cargo test -p gagavatar-track \
-        --test output -- --ignored write_sample_folders
+        --test output folder_reads_back
     python3 tools/reference/track_loader_check.py /tmp/track_samples/photo /tmp/track_samples/video
 
 Needs numpy, lmdb and Pillow (tested with numpy 1.26.4, lmdb 1.5.1, Pillow 11.0.0); torch is

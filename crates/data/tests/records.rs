@@ -1,15 +1,21 @@
 //! Tracked-frame pickles (`optim.pkl`): the release's numpy pickles read exactly, our writer's
-//! output read back identically, and every broken field named.
+//! output read back identically and equal to a byte-level golden (which CPython + numpy read:
+//! `tools/reference/writer_goldens_check.py`), and every broken field named.
 
 // The same fixtures as the formats crate's tests (temporary folders, pickles, LMDBs).
 #[path = "../../formats/tests/common/mod.rs"]
 mod common;
+#[path = "../../formats/tests/common/golden.rs"]
+mod golden;
 
 use std::collections::BTreeMap;
 use std::path::Path;
 
 use common::{data, f32s, TempDir};
-use gagavatar_data::records::{read_records, records_from_value, records_to_pickle, write_records};
+use gagavatar_data::records::{
+    read_records, records_from_value, records_to_pickle, write_records, EXPRESSION_COMPONENTS,
+    EYE_COMPONENTS, POSE_COMPONENTS, SHAPE_COMPONENTS,
+};
 use gagavatar_data::{DataError, TrackedFrame};
 use gagavatar_formats::numpy::{ArrayData, NdArray};
 use gagavatar_formats::pickle::{parse_pickle, to_pickle, DictKey, PyValue};
@@ -159,32 +165,136 @@ fn written_records_read_back_identically() {
         let out = Path::new(&out);
         std::fs::create_dir_all(out).unwrap();
         std::fs::copy(&path, out.join("optim.pkl")).unwrap();
-        let mut exp = serde_json::Map::new();
-        let mut names: Vec<&String> = recs.keys().collect();
-        gagavatar_data::sort_frame_names(&mut names);
-        for &name in &names {
-            let r = &recs[name];
-            let tm: Vec<Vec<f64>> = r
-                .transform_matrix
-                .unwrap()
-                .iter()
-                .map(|row| row.to_vec())
-                .collect();
-            exp.insert(
-                name.clone(),
-                serde_json::json!({
-                    "bbox": r.bbox.unwrap(), "shapecode": r.shapecode, "expcode": r.expcode,
-                    "posecode": r.posecode, "eyecode": r.eyecode, "transform_matrix": tm,
-                }),
-            );
-        }
-        let doc = serde_json::json!({ "order": names, "frames": exp });
+        let doc = release_json(&recs);
         std::fs::write(
             out.join("expected.json"),
             serde_json::to_string(&doc).unwrap(),
         )
         .unwrap();
     }
+}
+
+/// The values a written `optim.pkl` must hold, in the form
+/// `tracked_data_fixtures.py --check-records` reads: `{"order": [frame names in file order],
+/// "frames": {frame: {field: nested list}}}`, codes zero-padded to the release's lengths and
+/// every number rounded to float32 (here, independently of the writer).
+fn release_json(recs: &BTreeMap<String, TrackedFrame>) -> serde_json::Value {
+    let rounded = |v: &[f64], n: usize| -> Vec<f64> {
+        let mut v: Vec<f64> = v.iter().map(|&x| f64::from(x as f32)).collect();
+        v.resize(n, 0.0);
+        v
+    };
+    let mut names: Vec<&String> = recs.keys().collect();
+    gagavatar_data::sort_frame_names(&mut names);
+    let mut frames = serde_json::Map::new();
+    for &name in &names {
+        let r = &recs[name];
+        let tm: Vec<Vec<f64>> = r
+            .transform_matrix
+            .expect("transform_matrix")
+            .iter()
+            .map(|row| rounded(row, row.len()))
+            .collect();
+        frames.insert(
+            name.clone(),
+            serde_json::json!({
+                "bbox": rounded(&r.bbox.expect("bbox"), 4),
+                "shapecode": rounded(&r.shapecode, SHAPE_COMPONENTS),
+                "expcode": rounded(&r.expcode, EXPRESSION_COMPONENTS),
+                "posecode": rounded(&r.posecode, POSE_COMPONENTS),
+                "eyecode": rounded(&r.eyecode, EYE_COMPONENTS),
+                "transform_matrix": tm,
+            }),
+        );
+    }
+    serde_json::json!({ "order": names, "frames": frames })
+}
+
+/// The golden `optim.pkl` and its expected values (also read by
+/// `tools/reference/writer_goldens_check.py`).
+const RECORDS_GOLDEN: &str = "written/optim.pkl";
+const RECORDS_GOLDEN_JSON: &str = "written/optim_expected.json";
+const RECORDS_BLESS: &str = "GAGAVATAR_BLESS=1 cargo test -p gagavatar-data --test records \
+                             written_records_match_golden";
+
+/// The `expcode` length of the golden's second frame (the writer pads it).
+const SHORT_EXPCODE: usize = 50;
+/// Bits of 2^-7: full-mantissa eye codes are made by adding to them.
+const EYE_BASE_BITS: u32 = 0x3c00_0000;
+
+/// Three frames of two videos, given out of the file's natural order: codes of eighths (short
+/// in JSON, exact in float32), one short `expcode` the writer pads, and boxes, poses and
+/// cameras with values float32 cannot hold (the writer rounds them) or holds only with a full
+/// mantissa.
+fn golden_records() -> BTreeMap<String, TrackedFrame> {
+    let eighths = |n: usize, k: usize| -> Vec<f64> {
+        (0..n)
+            .map(|i| ((i * (k + 5)) % 33) as f64 / 8.0 - 2.0)
+            .collect()
+    };
+    let mut out = BTreeMap::new();
+    for (k, name) in ["spk_a_10", "spk_b_x_0", "spk_a_2"].iter().enumerate() {
+        let t = k as f64;
+        out.insert(
+            name.to_string(),
+            TrackedFrame {
+                shapecode: eighths(SHAPE_COMPONENTS, 0),
+                expcode: eighths(
+                    if k == 1 {
+                        SHORT_EXPCODE
+                    } else {
+                        EXPRESSION_COMPONENTS
+                    },
+                    k + 1,
+                ),
+                posecode: vec![0.1 * t, -0.2, 0.3, 0.01, -0.02 * t, 0.0],
+                eyecode: (0..6)
+                    .map(|i| f64::from(f32::from_bits(EYE_BASE_BITS + i * 7919 + k as u32)))
+                    .collect(),
+                transform_matrix: Some([
+                    [0.9, -0.1, 0.0, 0.01 * t],
+                    [0.1, 0.9, 0.0, -0.02],
+                    [0.0, 0.0, 1.0, 9.5 + t],
+                ]),
+                bbox: Some([12.5 + t, 20.25, 480.1, 501.7]),
+            },
+        );
+    }
+    out
+}
+
+#[test]
+fn written_records_match_golden() {
+    let recs = golden_records();
+    let dir = TempDir::new("records-golden");
+    let path = dir.path().join("optim.pkl");
+    write_records(&path, &recs).unwrap();
+    let expected = release_json(&recs);
+    // Our reader sees the padded, rounded values the expected JSON lists.
+    let back = read_records(&path).unwrap();
+    for (name, fields) in expected["frames"].as_object().unwrap() {
+        for field in FIELDS {
+            let want: Vec<f64> = match &fields[field] {
+                serde_json::Value::Array(rows) if rows[0].is_array() => rows
+                    .iter()
+                    .flat_map(|r| r.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()))
+                    .collect(),
+                v => v
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|x| x.as_f64().unwrap())
+                    .collect(),
+            };
+            assert_eq!(field_values(&back[name], field), want, "{name}.{field}");
+        }
+    }
+    golden::check_bytes(
+        &data(RECORDS_GOLDEN),
+        &std::fs::read(&path).unwrap(),
+        RECORDS_BLESS,
+    );
+    golden::check_json(&data(RECORDS_GOLDEN_JSON), &expected, RECORDS_BLESS);
 }
 
 #[test]

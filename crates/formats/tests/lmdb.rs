@@ -1,7 +1,10 @@
 //! LMDB: environments written by Python's `lmdb` (liblmdb 0.9.31) read exactly; our writer's
-//! environments read back; truncated and corrupted files end in errors, never panics.
+//! environments read back and equal a byte-level golden (which Python's `lmdb` reads);
+//! truncated and corrupted files end in errors, never panics.
 
 mod common;
+#[path = "common/golden.rs"]
+mod golden;
 
 use std::path::Path;
 
@@ -365,4 +368,98 @@ fn unsupported_and_foreign_files_are_named() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("duplicate keys (dupsort)"), "{e}");
+}
+
+// ---- byte-level golden of the writer -----------------------------------------------------
+
+/// The largest leaf node liblmdb keeps inline on a 4096-byte page (`src/lmdb.rs::node_max`).
+const NODE_MAX: usize = 2038;
+/// A leaf node's header ahead of its key.
+const NODE_HEADER: usize = 8;
+/// Small entries of the golden: enough to need two leaf pages (depth 2).
+const GOLDEN_SMALL: u64 = 96;
+/// The golden environment and its expected JSON (also read by
+/// `tools/reference/writer_goldens_check.py`).
+const LMDB_GOLDEN: &str = "tests/golden/written/lmdb/data.mdb";
+const LMDB_GOLDEN_JSON: &str = "tests/golden/written/lmdb_expected.json";
+const LMDB_BLESS: &str = "GAGAVATAR_BLESS=1 cargo test -p gagavatar-formats --test lmdb \
+                          written_environment_matches_golden";
+
+/// The golden's entries `(key, seed, length)`, value `value_bytes(seed, length)`, in the
+/// (unsorted) order given to the writer: release-like frame keys with values of 0 to 96 bytes,
+/// a value at the largest inline size for its key, one a byte over (one overflow page) and one
+/// over two pages.
+fn golden_lmdb_entries() -> Vec<(String, u64, usize)> {
+    let mut entries: Vec<(String, u64, usize)> = (0..GOLDEN_SMALL)
+        // 37 is coprime with 96: a permutation, so keys arrive out of order.
+        .map(|j| (j * 37) % GOLDEN_SMALL)
+        .map(|i| {
+            (
+                format!("spk_{}_{}", i % 3, i / 3),
+                i,
+                ((i * 29) % 97) as usize,
+            )
+        })
+        .collect();
+    for (key, seed, len) in [
+        (
+            "spk_x_inline",
+            500,
+            NODE_MAX - NODE_HEADER - "spk_x_inline".len(),
+        ),
+        (
+            "spk_x_overflow",
+            501,
+            NODE_MAX - NODE_HEADER - "spk_x_overflow".len() + 1,
+        ),
+        ("spk_x_large", 502, 5000),
+    ] {
+        entries.insert(entries.len() / 2, (key.to_owned(), seed, len));
+    }
+    entries
+}
+
+#[test]
+fn written_environment_matches_golden() {
+    let spec = golden_lmdb_entries();
+    let entries: Vec<(Vec<u8>, Vec<u8>)> = spec
+        .iter()
+        .map(|(k, seed, len)| (k.as_bytes().to_vec(), value_bytes(*seed, *len)))
+        .collect();
+    let dir = TempDir::new("lmdb-golden");
+    let env_dir = dir.path().join("env");
+    let stat = write_lmdb(&env_dir, entries.clone()).unwrap();
+    // The input covers what it is meant to: two levels, inline and overflow values.
+    assert_eq!(stat.depth, 2, "{stat:?}");
+    assert_eq!(stat.overflow_pages, 3, "{stat:?}");
+    assert_content(
+        &LmdbReader::open(&env_dir).unwrap(),
+        &entries,
+        "golden input",
+    );
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let written = std::fs::read(env_dir.join("data.mdb")).unwrap();
+    golden::check_bytes(&root.join(LMDB_GOLDEN), &written, LMDB_BLESS);
+
+    let mut sorted = spec.clone();
+    sorted.sort();
+    let expected = serde_json::json!({
+        "about": "entries in key order as [key, seed, length]; value bytes: \
+                  (seed * 31 + j * 7 + (j >> 8)) % 256 for j < length",
+        "stat": {
+            "psize": stat.page_size,
+            "depth": stat.depth,
+            "branch_pages": stat.branch_pages,
+            "leaf_pages": stat.leaf_pages,
+            "overflow_pages": stat.overflow_pages,
+            "entries": stat.entries,
+        },
+        "last_pgno": stat.last_page,
+        "last_txnid": stat.txnid,
+        "entries": sorted
+            .iter()
+            .map(|(k, seed, len)| serde_json::json!([k, seed, len]))
+            .collect::<Vec<_>>(),
+    });
+    golden::check_json(&root.join(LMDB_GOLDEN_JSON), &expected, LMDB_BLESS);
 }

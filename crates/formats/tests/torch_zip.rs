@@ -1,11 +1,17 @@
 //! torch zip checkpoints with config objects of unknown classes, shared storages and every
 //! dtype we read, against the values torch wrote (fixtures of
-//! `tools/reference/pickle_fixtures.py`).
+//! `tools/reference/pickle_fixtures.py`); our writer's checkpoint equals a byte-level golden
+//! (which `torch.load` reads: `tools/reference/writer_goldens_check.py`).
+
+mod common;
+#[path = "common/golden.rs"]
+mod golden;
 
 use std::path::PathBuf;
 
+use gagavatar_formats::pickle::{DictKey, PyValue};
 use gagavatar_formats::tensor::{RawData, TensorMap};
-use gagavatar_formats::torch_zip::read_torch_zip;
+use gagavatar_formats::torch_zip::{read_torch_zip, write_torch_zip};
 use gagavatar_formats::FormatError;
 
 fn golden_dir() -> PathBuf {
@@ -187,4 +193,195 @@ fn transposed_views_are_gathered_in_row_major_order() {
             assert_eq!(v[i * 6 + j], base(j * 8 + i), "[{i}][{j}]");
         }
     }
+}
+
+// ---- byte-level golden of the writer -----------------------------------------------------
+
+/// The golden checkpoint and its expected JSON (also read by
+/// `tools/reference/writer_goldens_check.py`).
+const TORCH_GOLDEN: &str = "written/checkpoint.pt";
+const TORCH_GOLDEN_JSON: &str = "written/checkpoint_expected.json";
+const TORCH_BLESS: &str = "GAGAVATAR_BLESS=1 cargo test -p gagavatar-formats --test torch_zip \
+                           written_checkpoint_matches_golden";
+
+/// A quiet NaN with a payload, which a checkpoint must keep bit for bit.
+const NAN_WITH_PAYLOAD: u32 = 0x7fc0_0001;
+/// The bits of 1.0f32: full-mantissa values are made by adding to them.
+const ONE_BITS: u32 = 0x3f80_0000;
+
+/// The golden's state dict in the order written (key order, as `write_torch_checkpoint` writes
+/// a `BTreeMap`): shapes of rank 0 to 4, one empty, values dyadic, full-mantissa and special.
+fn golden_tensors() -> Vec<(&'static str, Vec<usize>, Vec<f32>)> {
+    vec![
+        (
+            "backbone.conv.bias",
+            vec![6],
+            vec![
+                -0.0,
+                f32::from_bits(1),
+                f32::INFINITY,
+                f32::NEG_INFINITY,
+                f32::from_bits(NAN_WITH_PAYLOAD),
+                f32::MAX,
+            ],
+        ),
+        (
+            "backbone.conv.weight",
+            vec![2, 1, 2, 2],
+            (0..8).map(|i| i as f32 * 0.25 - 1.0).collect(),
+        ),
+        ("head.empty", vec![0, 3], vec![]),
+        (
+            "head.linear.weight",
+            vec![3, 4],
+            (0..12u32)
+                .map(|i| f32::from_bits(ONE_BITS + i * 7919) - 1.5)
+                .collect(),
+        ),
+        ("head.scale", vec![], vec![3.5]),
+    ]
+}
+
+/// A `meta_cfg` with every kind of value a configuration holds: nested dicts, lists, strings
+/// (one non-ASCII), ints of every pickle width (LONG1 included), floats, bools and None.
+fn golden_meta_cfg() -> PyValue {
+    let s = |k: &str| DictKey::Str(k.to_owned());
+    PyValue::Dict(vec![
+        (s("name"), PyValue::Str("golden".into())),
+        (
+            s("MODEL"),
+            PyValue::Dict(vec![
+                (s("feat_dim"), PyValue::Int(64)),
+                (
+                    s("sizes"),
+                    PyValue::List(vec![
+                        PyValue::Int(0),
+                        PyValue::Int(300),
+                        PyValue::Int(70_000),
+                        PyValue::Int(-5),
+                        PyValue::Int(1 << 40),
+                        PyValue::Int(-(1 << 40)),
+                    ]),
+                ),
+                (s("lr"), PyValue::Float(1e-4)),
+                (s("scale"), PyValue::Float(-0.5)),
+                (s("use_pe"), PyValue::Bool(true)),
+                (s("flip"), PyValue::Bool(false)),
+                (s("style"), PyValue::None),
+                (s("empty"), PyValue::List(vec![])),
+            ]),
+        ),
+        (
+            s("DATASET"),
+            PyValue::Dict(vec![(s("path"), PyValue::Str("data/caf\u{e9}".into()))]),
+        ),
+    ])
+}
+
+/// Plain configuration data as JSON (the expected JSON's `meta_cfg`).
+fn plain_json(v: &PyValue) -> serde_json::Value {
+    use serde_json::Value as Json;
+    match v {
+        PyValue::None => Json::Null,
+        PyValue::Bool(b) => Json::Bool(*b),
+        PyValue::Int(i) => Json::from(*i),
+        PyValue::Float(f) => Json::from(*f),
+        PyValue::Str(s) => Json::String(s.clone()),
+        PyValue::List(items) => Json::Array(items.iter().map(plain_json).collect()),
+        PyValue::Dict(entries) => Json::Object(
+            entries
+                .iter()
+                .map(|(k, item)| (key_text(k), plain_json(item)))
+                .collect(),
+        ),
+        other => panic!("not configuration data: {}", other.kind()),
+    }
+}
+
+/// A configuration key as JSON writes it (configurations have string keys only).
+fn key_text(k: &DictKey) -> String {
+    match k {
+        DictKey::Str(s) => s.clone(),
+        DictKey::Int(i) => panic!("configuration key {i} is not a string"),
+    }
+}
+
+fn hex_of(bytes: impl IntoIterator<Item = u8>) -> String {
+    bytes.into_iter().map(|b| format!("{b:02x}")).collect()
+}
+
+#[test]
+fn written_checkpoint_matches_golden() {
+    let tensors = golden_tensors();
+    let cfg = golden_meta_cfg();
+    let shapes: Vec<(&str, &[usize])> = tensors
+        .iter()
+        .map(|(k, shape, _)| (*k, shape.as_slice()))
+        .collect();
+    let dir = common::TempDir::new("torch-golden");
+    let path = dir.path().join("checkpoint.pt");
+    write_torch_zip(&path, &shapes, Some(&cfg), |i| Ok(tensors[i].2.clone())).unwrap();
+    // What our reader sees, before the bytes.
+    let back = read_torch_zip(&path).unwrap();
+    for (key, shape, values) in &tensors {
+        let got = &back[&format!("model.{key}")];
+        assert_eq!(&got.shape, shape, "{key}");
+        let RawData::Float(v) = &got.data else {
+            panic!("{key}: not a float tensor")
+        };
+        let bits = |x: &[f32]| x.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(v), bits(values), "{key}");
+    }
+    golden::check_bytes(
+        &golden_dir().join(TORCH_GOLDEN),
+        &std::fs::read(&path).unwrap(),
+        TORCH_BLESS,
+    );
+
+    // Tensors as little-endian float32 hex (NaN payloads and -0.0 survive JSON that way).
+    let expected = serde_json::json!({
+        "about": "model: key order and, per tensor, its shape and little-endian float32 bytes \
+                  (hex); meta_cfg: the configuration, with dict keys in pickle order as listed \
+                  in meta_cfg_key_order",
+        "model_order": tensors.iter().map(|t| t.0).collect::<Vec<_>>(),
+        "model": tensors
+            .iter()
+            .map(|(k, shape, values)| {
+                let hex = hex_of(values.iter().flat_map(|x| x.to_le_bytes()));
+                ((*k).to_owned(), serde_json::json!({ "shape": shape, "hex": hex }))
+            })
+            .collect::<serde_json::Map<_, _>>(),
+        "meta_cfg": plain_json(&cfg),
+        "meta_cfg_key_order": key_orders(&cfg),
+    });
+    golden::check_json(
+        &golden_dir().join(TORCH_GOLDEN_JSON),
+        &expected,
+        TORCH_BLESS,
+    );
+}
+
+/// The key order of every dict in `v`, depth first: `[[path, [keys]], ...]` (JSON objects need
+/// not keep an order; the pickle's order is part of what Python must see).
+fn key_orders(v: &PyValue) -> serde_json::Value {
+    fn walk(v: &PyValue, path: &str, out: &mut Vec<serde_json::Value>) {
+        match v {
+            PyValue::Dict(entries) => {
+                let keys: Vec<String> = entries.iter().map(|(k, _)| key_text(k)).collect();
+                out.push(serde_json::json!([path, keys]));
+                for (k, item) in entries {
+                    walk(item, &format!("{path}/{}", key_text(k)), out);
+                }
+            }
+            PyValue::List(items) => {
+                for (i, item) in items.iter().enumerate() {
+                    walk(item, &format!("{path}/{i}"), out);
+                }
+            }
+            _ => {}
+        }
+    }
+    let mut out = Vec::new();
+    walk(v, "", &mut out);
+    serde_json::Value::Array(out)
 }

@@ -272,28 +272,3 @@ fn video_boxes_are_smoothed_and_gaps_filled() {
     }
     assert!(smooth_head_boxes(&[None, None], 1.0).is_err());
 }
-
-/// Manual check of the framing on a real photo: reads `$GAGAVATAR_TRACK_FRAMING_JSON`
-/// (`{"image": path, "landmarks": [[x, y]; 478]}`, MediaPipe points in pixels), writes the
-/// release-rule crop with the calibrated head box to `<image>.crop.png`, so the framing
-/// statistics of that crop can be measured again (see `tools/reference/framing_measure.py`).
-#[test]
-#[ignore]
-fn crop_a_real_photo() {
-    let Ok(path) = std::env::var("GAGAVATAR_TRACK_FRAMING_JSON") else {
-        panic!("set GAGAVATAR_TRACK_FRAMING_JSON");
-    };
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
-    let image_path = v["image"].as_str().unwrap();
-    let pts: Vec<[f64; 2]> = serde_json::from_value(v["landmarks"].clone()).unwrap();
-    let lm = FaceLandmarks::new(pts).unwrap();
-    let img = image::open(image_path).unwrap().to_rgb8();
-    let b = FramingCalibration::default().head_box(&lm).unwrap();
-    let w = CropWindow::from_head_box(&b).unwrap();
-    println!("window {:?}", w.as_array());
-    crop_image(&img, &w)
-        .unwrap()
-        .save(format!("{image_path}.crop.png"))
-        .unwrap();
-}

@@ -78,6 +78,31 @@ fn same_record(a: &gagavatar_flame::TrackedFrame, b: &gagavatar_flame::TrackedFr
     );
 }
 
+/// Where the folders these tests wrote and checked are copied for
+/// `tools/reference/track_loader_check.py` (`photo/` and `video/`), when set.
+const SAMPLE_DIR_ENV: &str = "GAGAVATAR_TRACK_SAMPLE_DIR";
+
+/// Copies the checked folder `dir` to `$GAGAVATAR_TRACK_SAMPLE_DIR/<name>` when that is set.
+fn keep_sample(dir: &std::path::Path, name: &str) {
+    fn copy(from: &std::path::Path, to: &std::path::Path) {
+        std::fs::create_dir_all(to).unwrap();
+        for e in std::fs::read_dir(from).unwrap() {
+            let e = e.unwrap();
+            let target = to.join(e.file_name());
+            if e.file_type().unwrap().is_dir() {
+                copy(&e.path(), &target);
+            } else {
+                std::fs::copy(e.path(), target).unwrap();
+            }
+        }
+    }
+    if let Some(root) = std::env::var_os(SAMPLE_DIR_ENV) {
+        let to = std::path::Path::new(&root).join(name);
+        let _ = std::fs::remove_dir_all(&to);
+        copy(dir, &to);
+    }
+}
+
 #[test]
 fn photo_folder_reads_back() {
     let t = TempDir::new("photo");
@@ -103,6 +128,7 @@ fn photo_folder_reads_back() {
     let d = DriverSequence::open(&dir).unwrap();
     assert_eq!(d.frames.len(), 1);
     assert!(d.has_images());
+    keep_sample(&dir, "photo");
 }
 
 #[test]
@@ -157,6 +183,7 @@ fn video_folder_reads_back_and_is_all_or_nothing() {
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
         .collect();
     assert_eq!(names, vec!["clip".to_string()], "{names:?}");
+    keep_sample(&dir, "video");
 }
 
 #[test]
@@ -175,22 +202,4 @@ fn names_are_safe_for_the_release_loaders() {
     assert_eq!(sanitize_name("my_video 2.mp4"), "my-video-2-mp4");
     assert_eq!(sanitize_name("été"), "-t-");
     assert_eq!(sanitize_name(""), "track");
-}
-
-/// Writes a tracked photo and a tracked video (synthetic heads, a patterned frame) under
-/// `$GAGAVATAR_TRACK_SAMPLE_DIR` for `tools/reference/track_loader_check.py`.
-#[test]
-#[ignore]
-fn write_sample_folders() {
-    let Ok(root) = std::env::var("GAGAVATAR_TRACK_SAMPLE_DIR") else {
-        panic!("set GAGAVATAR_TRACK_SAMPLE_DIR to the folder to write into");
-    };
-    let root = std::path::PathBuf::from(root);
-    let img = frame_image();
-    let p = photo();
-    let crop = crop_image(&img, &p.frame.window).unwrap();
-    write_photo(&root.join("photo"), "photo", &p, &crop).unwrap();
-    let v = video(12);
-    let crops = v.frames.iter().map(|f| crop_image(&img, &f.window));
-    write_video(&root.join("video"), "video", &v, crops).unwrap();
 }

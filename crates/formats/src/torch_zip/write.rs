@@ -23,6 +23,8 @@ const ARCHIVE: &str = "archive";
 const DATA_ALIGN: u16 = 64;
 /// Serialization format version torch 1.6+ writes and 2.5 reads.
 const FORMAT_VERSION: &str = "3\n";
+/// Unix permissions recorded for every entry (`rw-r--r--`, the zip crate's default).
+const ENTRY_PERMISSIONS: u32 = 0o644;
 
 /// Pickle opcodes used here (protocol 2; names as in CPython's `pickletools`).
 mod op {
@@ -292,11 +294,17 @@ fn write_archive(
 ) -> Result<()> {
     let file = std::fs::File::create(tmp).map_err(io_err(path))?;
     let mut zip = zip::ZipWriter::new(std::io::BufWriter::new(file));
+    // Every header field is fixed, so the archive's bytes depend on the input alone: left to
+    // their defaults, the zip crate stamps the time of writing (with its `time` feature, which
+    // any crate in a build can turn on) and marks entries as made on DOS on Windows.
     let opts = |len: usize| {
         zip::write::SimpleFileOptions::default()
             .compression_method(zip::CompressionMethod::Stored)
             .with_alignment(DATA_ALIGN)
             .large_file(len as u64 >= u32::MAX as u64)
+            .last_modified_time(zip::DateTime::default())
+            .system(zip::System::Unix)
+            .unix_permissions(ENTRY_PERMISSIONS)
     };
     let entry = |zip: &mut zip::ZipWriter<_>, name: &str, bytes: &[u8]| -> Result<()> {
         zip.start_file(format!("{ARCHIVE}/{name}"), opts(bytes.len()))
