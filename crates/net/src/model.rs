@@ -273,64 +273,13 @@ impl GagAvatar {
         vertices: &Tensor,
         transform: &Tensor,
     ) -> Result<Tensor> {
-        let v = self.cfg.n_vertices;
-        let b = match vertices.dims() {
-            [b, n, 3] if *b > 0 && *n == v => *b,
-            other => {
-                return Err(input_err(
-                    "target vertices",
-                    format!("expected [B, {v}, 3], got {other:?}"),
-                ))
-            }
-        };
-        check_finite(vertices, "target vertices")?;
-        check_transform(transform, "target transform", Some(b))?;
-        let ab = avatar.batch();
-        if ab != b && ab != 1 {
-            return Err(input_err(
-                "avatar",
-                format!("batch {ab} does not match {b} frames (use an avatar of batch 1 or {b})"),
-            ));
-        }
-        let dtype = avatar.colors.dtype();
-        let expand = |t: &Tensor| -> Result<Tensor> {
-            Ok(if ab == b {
-                t.clone()
-            } else {
-                let mut d = t.dims().to_vec();
-                d[0] = b;
-                t.broadcast_as(d)?.contiguous()?
-            })
-        };
-        let lifted = expand(&avatar.lifted_xyz)?;
-        let means = Tensor::cat(&[&vertices.to_dtype(dtype)?, &lifted], 1)?.contiguous()?;
-        let features = expand(&avatar.colors)?.contiguous()?;
-        let opacities = expand(&avatar.opacities)?.contiguous()?;
-        let scales = expand(&avatar.scales)?.contiguous()?;
-        let rotations = expand(&avatar.rotations)?.contiguous()?;
-        let cams = cameras(transform, self.cfg.image_size)?;
-        let background = Tensor::zeros(self.cfg.color_dim, dtype, features.device())?;
-        let out = splat(
-            &Gaussians {
-                means: &means,
-                features: &features,
-                opacities: &opacities,
-                scales: &scales,
-                rotations: &rotations,
-            },
-            &background,
-            &cams,
-        )?;
-        Ok(out.image)
+        splat_coarse(&self.cfg, avatar, vertices, transform)
     }
 
     /// The neural renderer alone (coarse `[B, C, H, W]` -> fine RGB); with the
     /// `no_neural_renderer` ablation, the coarse RGB channels.
     pub fn render(&self, coarse: &Tensor, noise: Noise) -> Result<Tensor> {
-        if self.cfg.no_neural_renderer {
-            return Ok(coarse.narrow(1, 0, 3)?.contiguous()?);
-        }
-        Ok(self.renderer.forward(coarse, noise)?)
+        render_fine(&self.cfg, &self.renderer, coarse, noise)
     }
 
     /// The training pass (spec 1: both phases in one differentiable graph): source `i`
@@ -393,4 +342,78 @@ pub struct TrainOutput {
     pub coarse: Tensor,
     /// The fine RGB `[B, 3, H, W]`.
     pub fine: Tensor,
+}
+
+/// The first half of a drive, which needs only the configuration: the avatar's Gaussians, the
+/// expression ones at `vertices` `[B, V, 3]` (already scaled by 5), splatted from the cameras
+/// `transform` `[B, 3, 4]` into the `[B, C, H, W]` feature image.
+pub fn splat_coarse(
+    cfg: &ModelConfig,
+    avatar: &Avatar,
+    vertices: &Tensor,
+    transform: &Tensor,
+) -> Result<Tensor> {
+    let v = cfg.n_vertices;
+    let b = match vertices.dims() {
+        [b, n, 3] if *b > 0 && *n == v => *b,
+        other => {
+            return Err(input_err(
+                "target vertices",
+                format!("expected [B, {v}, 3], got {other:?}"),
+            ))
+        }
+    };
+    check_finite(vertices, "target vertices")?;
+    check_transform(transform, "target transform", Some(b))?;
+    let ab = avatar.batch();
+    if ab != b && ab != 1 {
+        return Err(input_err(
+            "avatar",
+            format!("batch {ab} does not match {b} frames (use an avatar of batch 1 or {b})"),
+        ));
+    }
+    let dtype = avatar.colors.dtype();
+    let expand = |t: &Tensor| -> Result<Tensor> {
+        Ok(if ab == b {
+            t.clone()
+        } else {
+            let mut d = t.dims().to_vec();
+            d[0] = b;
+            t.broadcast_as(d)?.contiguous()?
+        })
+    };
+    let lifted = expand(&avatar.lifted_xyz)?;
+    let means = Tensor::cat(&[&vertices.to_dtype(dtype)?, &lifted], 1)?.contiguous()?;
+    let features = expand(&avatar.colors)?.contiguous()?;
+    let opacities = expand(&avatar.opacities)?.contiguous()?;
+    let scales = expand(&avatar.scales)?.contiguous()?;
+    let rotations = expand(&avatar.rotations)?.contiguous()?;
+    let cams = cameras(transform, cfg.image_size)?;
+    let background = Tensor::zeros(cfg.color_dim, dtype, features.device())?;
+    let out = splat(
+        &Gaussians {
+            means: &means,
+            features: &features,
+            opacities: &opacities,
+            scales: &scales,
+            rotations: &rotations,
+        },
+        &background,
+        &cams,
+    )?;
+    Ok(out.image)
+}
+
+/// The second half: the neural renderer (coarse `[B, C, H, W]` -> fine RGB); with the
+/// `no_neural_renderer` ablation, the coarse RGB channels.
+pub fn render_fine(
+    cfg: &ModelConfig,
+    renderer: &StyleUNet,
+    coarse: &Tensor,
+    noise: Noise,
+) -> Result<Tensor> {
+    if cfg.no_neural_renderer {
+        return Ok(coarse.narrow(1, 0, 3)?.contiguous()?);
+    }
+    Ok(renderer.forward(coarse, noise)?)
 }
