@@ -1,21 +1,21 @@
-//! What `reenact`, `orbit` and `export-ply` share: loading the model, FLAME and the source,
-//! reconstructing the avatar once, and turning batches of (record, camera) into RGB frames with
-//! a per-stage time split.
+//! What `reenact`, `orbit` and `export-ply` share, as a shell over the pipeline library
+//! (`gagavatar-avatar`): the source arguments, resolving the source (a tracked folder, a record
+//! and image, or a photo tracked now), and writing driven frames to a video with a progress bar
+//! and a per-stage time split.
 
 pub use crate::progress::{progress, spinner};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
-use candle_core::{Device, Tensor};
 use clap::Args;
-use gagavatar_flame::{FlameIdentity, FlameModel, TrackedFrame};
-use gagavatar_net::checkpoint;
-use gagavatar_net::model::{Avatar, GagAvatar};
+use gagavatar_avatar::{
+    Avatar, Drive, DriveTimes, Engine, EngineConfig, FlameSource, FrameCodes, SYNTHETIC_FLAME,
+};
+use gagavatar_flame::TrackedFrame;
 use gagavatar_net::style_unet::Noise;
 use gagavatar_video::{VideoOptions, VideoWriter};
 
-use crate::cmd_model::{image_tensor, load_flame, preset, read_image};
 use crate::tracking;
 
 /// The inputs every avatar command needs.
@@ -25,9 +25,11 @@ pub struct SourceArgs {
     #[arg(long)]
     pub ckpt: PathBuf,
     /// FLAME asset (`FLAME_with_eye.pt`, or safetensors with the same keys); `synthetic` for the
-    /// built-in synthetic asset that synth-data, train and the demo model use.
+    /// built-in synthetic asset that synth-data, train and the demo model use. Default: the
+    /// asset the weights name (the synthetic one for the demo model and weights trained here;
+    /// the release's weights need FLAME_with_eye.pt).
     #[arg(long)]
-    pub flame: PathBuf,
+    pub flame: Option<PathBuf>,
     /// Source: a photo (tracked now, or found in the tracking cache), a tracked folder
     /// (`gagavatar track` output), or with --source-record the model-ready image (resized with a
     /// notice when it is not image_size square).
@@ -54,37 +56,73 @@ pub struct SourceArgs {
     pub fresh_noise: bool,
 }
 
+impl SourceArgs {
+    /// What the library loads for these arguments.
+    pub fn engine_config(&self) -> EngineConfig {
+        let mut cfg = EngineConfig::new(&self.ckpt);
+        cfg.flame = self
+            .flame
+            .as_deref()
+            .map_or(FlameSource::FromWeights, FlameSource::from_arg);
+        cfg.preset = self.preset.clone();
+        cfg.n_shape = self.n_shape;
+        cfg.n_exp = self.n_exp;
+        cfg.noise = if self.fresh_noise {
+            Noise::Fresh
+        } else {
+            Noise::Fixed
+        };
+        cfg
+    }
+
+    /// Loads the weights and FLAME once, printing the library's warnings.
+    pub fn open_engine(&self) -> Result<Engine> {
+        let engine =
+            Engine::open(&self.engine_config()).map_err(crate::cmd_model::with_flag_hints)?;
+        for w in engine.warnings() {
+            eprintln!("warning: {w}");
+        }
+        Ok(engine)
+    }
+}
+
+/// The FLAME asset the engine drives with, as the tracker's `--flame` argument (so a photo is
+/// tracked with the asset it will be driven with).
+pub fn tracking_flame(engine: &Engine) -> PathBuf {
+    match engine.flame_source() {
+        FlameSource::File(p) => p.clone(),
+        _ => PathBuf::from(SYNTHETIC_FLAME),
+    }
+}
+
 /// Wall time per stage, summed over frames.
 #[derive(Debug, Default, Clone)]
 pub struct Timings {
     pub load: Duration,
     pub reconstruct: Duration,
-    pub flame: Duration,
-    pub splat: Duration,
-    pub renderer: Duration,
     pub encode: Duration,
-    /// The whole drive (FLAME, splatting, renderer, read-back) when it runs on a GPU.
-    pub gpu: Duration,
-    pub frames: usize,
+    /// The drive's own split (FLAME, splatting, renderer; or the whole GPU drive).
+    pub drive: DriveTimes,
 }
 
 impl Timings {
     /// One summary line per stage, per frame where it runs per frame.
     pub fn report(&self, total: Duration) -> String {
         let ms = |d: Duration| 1e3 * d.as_secs_f64();
-        let per = |d: Duration| ms(d) / self.frames.max(1) as f64;
-        if self.gpu > Duration::ZERO {
+        let d = &self.drive;
+        let per = |t: Duration| ms(t) / d.frames.max(1) as f64;
+        if d.gpu > Duration::ZERO {
             return format!(
                 "time: load {:.0} ms, reconstruct {:.0} ms; per frame: GPU drive (FLAME, \
 splatting, renderer, read-back) {:.1} ms, video encoding {:.1} ms; {} frames, total wall {:.1} s \
 ({:.2} frames/s)",
                 ms(self.load),
                 ms(self.reconstruct),
-                per(self.gpu),
+                per(d.gpu),
                 per(self.encode),
-                self.frames,
+                d.frames,
                 total.as_secs_f64(),
-                self.frames as f64 / total.as_secs_f64().max(1e-9),
+                d.frames as f64 / total.as_secs_f64().max(1e-9),
             );
         }
         format!(
@@ -92,28 +130,23 @@ splatting, renderer, read-back) {:.1} ms, video encoding {:.1} ms; {} frames, to
 neural renderer {:.1} ms, video encoding {:.1} ms; {} frames, total wall {:.1} s ({:.2} frames/s)",
             ms(self.load),
             ms(self.reconstruct),
-            per(self.flame),
-            per(self.splat),
-            per(self.renderer),
+            per(d.flame),
+            per(d.splat),
+            per(d.renderer),
             per(self.encode),
-            self.frames,
+            d.frames,
             total.as_secs_f64(),
-            self.frames as f64 / total.as_secs_f64().max(1e-9),
+            d.frames as f64 / total.as_secs_f64().max(1e-9),
         )
     }
 }
 
-/// A reconstructed avatar, ready to be driven.
+/// A reconstructed avatar (sharing the engine's model and FLAME) and the drive that renders it (CPU, or a GPU after
+/// [`Session::use_device`]).
 pub struct Session {
-    pub model: GagAvatar,
-    pub flame: FlameModel,
-    pub source: TrackedFrame,
     pub avatar: Avatar,
-    identity: FlameIdentity,
-    pub noise: Noise,
+    drive: Box<dyn Drive>,
     pub timings: Timings,
-    /// The drive on a GPU, when [`Session::use_device`] found one.
-    gpu: Option<gagavatar_gpu::drive::GpuDrive>,
 }
 
 /// Reads the source record: JSON, or a frame of a release pickle.
@@ -139,9 +172,9 @@ pub struct ResolvedSource {
 }
 
 /// `--source` with `--source-record` as given; else `--source` is a tracked folder, or a photo
-/// tracked now (or found in the tracking cache). A photo without a face fails with "no face
-/// found in PATH" before anything is written.
-pub fn resolve_source(a: &SourceArgs) -> Result<ResolvedSource> {
+/// tracked now (or found in the tracking cache) with the engine's FLAME asset. A photo without a
+/// face fails with "no face found in PATH" before anything is written.
+pub fn resolve_source(a: &SourceArgs, engine: &Engine) -> Result<ResolvedSource> {
     if let Some(rec) = &a.source_record {
         return Ok(ResolvedSource {
             image: SourceImage::File(a.source.clone()),
@@ -152,7 +185,7 @@ pub fn resolve_source(a: &SourceArgs) -> Result<ResolvedSource> {
     let dir = if tracking::is_tracked_folder(&a.source) {
         a.source.clone()
     } else {
-        tracking::tracked_inline(&a.source, &a.flame, "source", true)?.dir
+        tracking::tracked_inline(&a.source, &tracking_flame(engine), "source", true)?.dir
     };
     from_tracked_folder(&dir, a.source_key.as_deref())
 }
@@ -195,64 +228,6 @@ pub fn from_tracked_folder(dir: &Path, key: Option<&str>) -> Result<ResolvedSour
     })
 }
 
-/// Reads weights and builds the model; also returns the fingerprint of the FLAME asset the
-/// weights were trained with, when they record one.
-pub fn load_model_noting_flame(
-    ckpt: &Path,
-    explicit: Option<&gagavatar_net::ModelConfig>,
-) -> Result<(GagAvatar, Option<String>)> {
-    let loading = || format!("loading {}", ckpt.display());
-    let weights = checkpoint::read_weights(ckpt).with_context(loading)?;
-    let trained_with = weights
-        .metadata
-        .get(checkpoint::FLAME_METADATA_KEY)
-        .cloned();
-    let cfg = checkpoint::resolve_config(&weights, explicit);
-    checkpoint::check_keys(&cfg, &weights.tensors).with_context(loading)?;
-    let model =
-        checkpoint::build_model(&cfg, weights.tensors, &Device::Cpu).with_context(loading)?;
-    Ok((model, trained_with))
-}
-
-/// Why a FLAME asset (by fingerprint) does not fit weights, or `None` when it does or cannot be
-/// told. Weights written by `gagavatar train` record their asset's fingerprint; for others the
-/// architecture tells: the release's weights were trained with the real FLAME, the `tiny` and
-/// `small` ones (trained here) with the built-in synthetic asset unless `train --flame` said
-/// otherwise.
-pub fn flame_mismatch(
-    trained_with: Option<&str>,
-    architecture: &str,
-    asset: u64,
-) -> Option<String> {
-    let synthetic = synthetic_fingerprint();
-    let ours = format!("{asset:016x}");
-    match trained_with {
-        Some(fp) if fp.eq_ignore_ascii_case(&ours) => None,
-        Some(fp) => Some(format!(
-            "the weights were trained with another FLAME asset (fingerprint {fp}, this one is \
-             {ours}{}); the avatar will be distorted. Pass the asset they were trained with",
-            if asset == synthetic { ", the built-in synthetic one" } else { "" }
-        )),
-        None if architecture == "release" && asset == synthetic => Some(
-            "the release weights were trained with the real FLAME asset (FLAME_with_eye.pt), not \
-             the built-in synthetic stand-in; the avatar will be distorted"
-                .into(),
-        ),
-        None if architecture != "release" && asset != synthetic => Some(format!(
-            "`{architecture}` weights without a recorded FLAME asset were trained with the built-in \
-             synthetic one (--flame synthetic); this asset differs (fingerprint {ours}), so the \
-             avatar may be distorted"
-        )),
-        None => None,
-    }
-}
-
-/// The fingerprint of the built-in synthetic asset (`gagavatar flame synth`, seed 0).
-fn synthetic_fingerprint() -> u64 {
-    static FP: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
-    *FP.get_or_init(|| gagavatar_flame::synthesize(0).fingerprint())
-}
-
 /// The 3x4 transform of a record as `[3, 4]` f32 values, or an error naming the record.
 pub fn record_transform(record: &TrackedFrame, what: &str) -> Result<[[f64; 4]; 3]> {
     record
@@ -260,79 +235,38 @@ pub fn record_transform(record: &TrackedFrame, what: &str) -> Result<[[f64; 4]; 
         .with_context(|| format!("{what} has no transform_matrix"))
 }
 
-pub fn transforms_tensor(tms: &[[[f64; 4]; 3]]) -> Result<Tensor> {
-    let flat: Vec<f32> = tms
-        .iter()
-        .flat_map(|m| m.iter().flatten().map(|&x| x as f32))
-        .collect();
-    Ok(Tensor::from_vec(flat, (tms.len(), 3, 4), &Device::Cpu)?)
-}
-
 impl Session {
-    /// Resolves the source (tracking a raw photo first) and reconstructs the avatar.
+    /// Loads the engine, resolves the source (tracking a raw photo first) and reconstructs the
+    /// avatar.
     pub fn open(a: &SourceArgs) -> Result<Self> {
-        let src = resolve_source(a)?;
-        Self::open_resolved(a, src)
+        let t0 = Instant::now();
+        let engine = a.open_engine()?;
+        let load = t0.elapsed();
+        let src = resolve_source(a, &engine)?;
+        Self::with_source(&engine, src, load)
     }
 
-    pub fn open_resolved(a: &SourceArgs, src: ResolvedSource) -> Result<Self> {
-        let t0 = Instant::now();
-        let explicit = a.preset.as_deref().map(preset).transpose()?;
-        let source = src.record;
-        let source_tm = record_transform(&source, "the source record")?;
-        let (model, trained_with) = load_model_noting_flame(&a.ckpt, explicit.as_ref())?;
-        let flame = load_flame(&a.flame, a.n_shape, a.n_exp)?;
-        if let Some(warning) = flame_mismatch(
-            trained_with.as_deref(),
-            &model.cfg.name,
-            flame.asset_fingerprint,
-        ) {
-            eprintln!(
-                "warning: {} with FLAME asset {}: {warning}",
-                a.ckpt.display(),
-                a.flame.display()
-            );
-        }
-        if flame.n_vertices != model.cfg.n_vertices {
-            bail!(
-                "FLAME asset {} has {} vertices, the model expects {}",
-                a.flame.display(),
-                flame.n_vertices,
-                model.cfg.n_vertices
-            );
-        }
-        let image = match &src.image {
-            SourceImage::File(path) => read_image(path, model.cfg.image_size)?,
-            SourceImage::Crop(img) => image_tensor(img, model.cfg.image_size)?,
+    /// Reconstructs the avatar of an already resolved source; `load` is the engine's load time.
+    pub fn with_source(engine: &Engine, src: ResolvedSource, load: Duration) -> Result<Self> {
+        let size = engine.image_size();
+        let image = match src.image {
+            SourceImage::File(path) => crate::cmd_model::read_rgb(&path, size)?,
+            SourceImage::Crop(img) => img,
         };
-        let shape = source
-            .params(&flame)
-            .with_context(|| format!("source record {}", src.label))?
-            .shape;
-        let identity = flame.identity(&shape)?;
-        let source_transform = transforms_tensor(&[source_tm])?;
-        let load = t0.elapsed();
         let t1 = Instant::now();
-        let avatar = model.reconstruct(&image, &source_transform)?;
+        let avatar = engine
+            .avatar(&image, &src.record)
+            .with_context(|| format!("source record {}", src.label))?;
         let reconstruct = t1.elapsed();
+        let drive = Box::new(avatar.cpu_drive());
         Ok(Self {
-            model,
-            flame,
-            source,
-
             avatar,
-            identity,
-            noise: if a.fresh_noise {
-                Noise::Fresh
-            } else {
-                Noise::Fixed
-            },
+            drive,
             timings: Timings {
                 load,
                 reconstruct,
                 ..Default::default()
             },
-            gpu: None,
         })
     }
 
@@ -344,77 +278,36 @@ impl Session {
         };
         let t0 = Instant::now();
         let tuning = gagavatar_gpu::Tuning::from_env()?;
-        self.gpu = Some(gagavatar_gpu::drive::GpuDrive::from_model(
-            gpu,
-            &tuning,
-            &self.model,
-            &self.avatar,
-            &self.flame,
-            &self.identity,
-            self.noise,
-        )?);
+        self.drive = Box::new(self.avatar.gpu_drive(gpu, &tuning)?);
         self.timings.load += t0.elapsed();
         Ok(())
     }
 
+    /// The record the avatar was made from.
+    pub fn source(&self) -> &TrackedFrame {
+        self.avatar.source()
+    }
+
     pub fn image_size(&self) -> usize {
-        self.model.cfg.image_size
+        self.avatar.image_size()
     }
 
-    /// FLAME vertices `[B, V, 3]` with the source's identity and each record's expression, jaw
-    /// and eyes (spec section 10).
-    pub fn vertices(&mut self, records: &[&TrackedFrame], names: &[String]) -> Result<Tensor> {
-        let t0 = Instant::now();
-        let mut exp = Vec::with_capacity(records.len());
-        let mut pose = Vec::with_capacity(records.len());
-        let mut eye = Vec::with_capacity(records.len());
-        for (r, name) in records.iter().zip(names) {
-            let p = r
-                .params(&self.flame)
-                .with_context(|| format!("driver frame `{name}`"))?;
-            exp.push(p.expression);
-            pose.push(p.pose);
-            eye.push(p.eye);
-        }
-        let out = self.flame.forward_with_identity(
-            &self.identity,
-            &Tensor::cat(&exp, 0)?,
-            &Tensor::cat(&pose, 0)?,
-            &Tensor::cat(&eye, 0)?,
-        )?;
-        self.timings.flame += t0.elapsed();
-        Ok(out.vertices)
-    }
-
-    /// Renders a batch: FLAME, splatting and the neural renderer; RGB u8 frames (HWC).
+    /// Renders a batch of (record, camera): RGB u8 frames (HWC). `names` name the records in
+    /// errors.
     pub fn render(
         &mut self,
         records: &[&TrackedFrame],
         names: &[String],
         transforms: &[[[f64; 4]; 3]],
     ) -> Result<Vec<Vec<u8>>> {
-        if let Some(drive) = &mut self.gpu {
-            let t0 = Instant::now();
-            let mut out = Vec::with_capacity(records.len());
-            for ((r, name), tm) in records.iter().zip(names).zip(transforms) {
-                let codes = gagavatar_gpu::flame::FrameCodes::from_record(r, &self.flame)
-                    .with_context(|| format!("driver frame `{name}`"))?;
-                out.push(drive.frame_rgb8(&codes, tm)?);
-            }
-            self.timings.gpu += t0.elapsed();
-            self.timings.frames += records.len();
-            return Ok(out);
+        let mut frames: Vec<(FrameCodes, [[f64; 4]; 3])> = Vec::with_capacity(records.len());
+        for ((r, name), tm) in records.iter().zip(names).zip(transforms) {
+            let codes = self.avatar.codes(r, &format!("driver frame `{name}`"))?;
+            frames.push((codes, *tm));
         }
-        let verts = self.vertices(records, names)?;
-        let tm = transforms_tensor(transforms)?;
-        let t0 = Instant::now();
-        let coarse = self.model.splat_coarse(&self.avatar, &verts, &tm)?;
-        let t1 = Instant::now();
-        self.timings.splat += t1 - t0;
-        let fine = self.model.render(&coarse, self.noise)?;
-        self.timings.renderer += t1.elapsed();
-        self.timings.frames += records.len();
-        to_rgb8(&fine)
+        let out = self.drive.render_batch(&frames)?;
+        self.timings.drive = self.drive.times();
+        Ok(out)
     }
 }
 
@@ -476,33 +369,6 @@ impl Session {
     }
 }
 
-/// `[B, 3, H, W]` in [0, 1] -> B interleaved RGB u8 frames.
-pub fn to_rgb8(images: &Tensor) -> Result<Vec<Vec<u8>>> {
-    let (b, c, h, w) = images.dims4()?;
-    if c != 3 {
-        bail!("expected RGB images, got {c} channels");
-    }
-    let data: Vec<f32> = images
-        .to_dtype(candle_core::DType::F32)?
-        .flatten_all()?
-        .to_vec1()?;
-    let plane = h * w;
-    Ok((0..b)
-        .map(|i| {
-            let img = &data[i * 3 * plane..(i + 1) * 3 * plane];
-            let mut out = vec![0u8; 3 * plane];
-            for p in 0..plane {
-                for ch in 0..3 {
-                    let v = img[ch * plane + p];
-                    // NaN maps to 0 (`as` saturates), so a broken frame is visible, not fatal.
-                    out[3 * p + ch] = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
-                }
-            }
-            out
-        })
-        .collect())
-}
-
 /// Places `left` (fitted into `w` x `h` without distortion: black bars where its shape differs)
 /// and `right` side by side.
 pub fn side_by_side(left: &image::RgbImage, right: &[u8], w: usize, h: usize) -> Vec<u8> {
@@ -530,30 +396,4 @@ pub fn side_by_side(left: &image::RgbImage, right: &[u8], w: usize, h: usize) ->
         row[w * 3..].copy_from_slice(&right[y * w * 3..(y + 1) * w * 3]);
     }
     out
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn flame_mismatches_are_reported() {
-        let synthetic = synthetic_fingerprint();
-        let other = synthetic ^ 1;
-        let fp = |x: u64| format!("{x:016x}");
-        // Recorded fingerprints decide.
-        assert!(flame_mismatch(Some(&fp(synthetic)), "tiny", synthetic).is_none());
-        assert!(flame_mismatch(Some(&fp(other)), "release", other).is_none());
-        let w = flame_mismatch(Some(&fp(other)), "tiny", synthetic).unwrap();
-        assert!(
-            w.contains("another FLAME asset") && w.contains("synthetic"),
-            "{w}"
-        );
-        // Without one, the architecture: release with the stand-in, tiny with another asset.
-        let w = flame_mismatch(None, "release", synthetic).unwrap();
-        assert!(w.contains("FLAME_with_eye.pt"), "{w}");
-        assert!(flame_mismatch(None, "release", other).is_none());
-        assert!(flame_mismatch(None, "tiny", synthetic).is_none());
-        assert!(flame_mismatch(None, "small", other).is_some());
-    }
 }

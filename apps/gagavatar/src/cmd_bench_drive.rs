@@ -16,9 +16,10 @@ use gagavatar_net::model::Avatar;
 use gagavatar_net::style_unet::{Noise, StyleUNet};
 use gagavatar_net::ModelConfig;
 use gagavatar_splat::testscene::{avatar_scene, Regime, Rng};
-use gagavatar_splat::{splat, Camera, Gaussians};
+use gagavatar_splat::Camera;
 
 use crate::device_args::DeviceArgs;
+use gagavatar_avatar::{CpuDrive, Drive};
 
 #[derive(Debug, Args)]
 pub struct DriveBench {
@@ -291,47 +292,33 @@ fn bench_cpu(
     threads: usize,
 ) -> Result<()> {
     let frames = a.frames.unwrap_or(10).max(1);
-    let dev = Device::Cpu;
-    let tmt = Tensor::from_vec(
-        tm.iter().flatten().map(|&x| x as f32).collect::<Vec<_>>(),
-        (1, 3, 4),
-        &dev,
-    )?;
-    let cams = gagavatar_net::model::cameras(&tmt, cfg.image_size)?;
-    let bg = Tensor::zeros(cfg.color_dim, DType::F32, &dev)?;
-    let t2 = |v: &[f32]| Tensor::from_slice(v, (1, v.len()), &dev);
+    // The library's CPU drive, the one `reenact` and `eval` use, built from parts (no ViT).
+    let mut drive = CpuDrive::from_parts(
+        cfg.clone(),
+        renderer.clone(),
+        Arc::new(flame.clone()),
+        avatar.clone(),
+        identity.clone(),
+        Noise::Fixed,
+    );
     let mut times: Vec<Vec<f64>> = vec![Vec::new(); 4];
     let bar = crate::animate::progress(frames + 1, "bench drive (CPU)");
     for f in 0..=frames {
         crate::check_interrupt()?;
         let c = codes(rng, flame.config.n_exp, f);
+        let before = drive.times();
         let t = Instant::now();
-        let verts = flame
-            .forward_with_identity(identity, &t2(&c.expression)?, &t2(&c.pose)?, &t2(&c.eye)?)?
-            .vertices;
-        let t_flame = t.elapsed();
-        let means = Tensor::cat(&[&verts, &avatar.lifted_xyz], 1)?;
-        let coarse = splat(
-            &Gaussians {
-                means: &means,
-                features: &avatar.colors,
-                opacities: &avatar.opacities,
-                scales: &avatar.scales,
-                rotations: &avatar.rotations,
-            },
-            &bg,
-            &cams,
-        )?
-        .image;
-        let t_splat = t.elapsed();
-        let fine = renderer.forward(&coarse, Noise::Fixed)?;
-        let _rgb = crate::animate::to_rgb8(&fine)?;
-        let t_all = t.elapsed();
+        let _rgb = drive.render(&c, tm)?;
+        let wall = t.elapsed();
+        let after = drive.times();
         if f > 0 {
-            times[0].push(1e3 * t_flame.as_secs_f64());
-            times[1].push(1e3 * (t_splat - t_flame).as_secs_f64());
-            times[2].push(1e3 * (t_all - t_splat).as_secs_f64());
-            times[3].push(1e3 * t_all.as_secs_f64());
+            let ms = |d: std::time::Duration| 1e3 * d.as_secs_f64();
+            let t_flame = after.flame - before.flame;
+            let t_splat = after.splat - before.splat;
+            times[0].push(ms(t_flame));
+            times[1].push(ms(t_splat));
+            times[2].push(ms(wall.saturating_sub(t_flame + t_splat)));
+            times[3].push(ms(wall));
         }
         bar.inc(1);
     }

@@ -43,7 +43,9 @@ pub struct DemoArgs {
 fn steps(a: &DemoArgs, assets: &Path) -> (ReenactArgs, OrbitArgs, ExportPlyArgs) {
     let src = || SourceArgs {
         ckpt: assets.join("weights.safetensors"),
-        flame: PathBuf::from(SYNTHETIC_FLAME),
+        // The asset the demo weights were trained with (the built-in synthetic one), found by
+        // the library as a newcomer's run would.
+        flame: None,
         source: assets.join("source.png"),
         source_record: Some(assets.join("source.json")),
         source_key: None,

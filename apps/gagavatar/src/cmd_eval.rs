@@ -16,14 +16,12 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
 use gagavatar_data::{group_by_video, Dataset};
-use gagavatar_flame::{synthesize, FlameAsset, FlameModel, FlameParams, LoadOptions};
+use gagavatar_flame::{synthesize, FlameAsset, LoadOptions};
 use gagavatar_metrics::report::{self, PairRow};
 use gagavatar_metrics::{
     cross_pairs, default_asset_dir, self_pairs, EvalPair, FaceScorer, IdentityModel, IdentityNet,
     Mode, SourceFace,
 };
-use gagavatar_net::model::{Avatar, GagAvatar};
-use gagavatar_net::style_unet::Noise;
 use gagavatar_track::rig::LandmarkRig;
 use gagavatar_train::metrics::{psnr_slice, ssim_plane, SsimWindows, LUMA};
 use gagavatar_train::pairs::SampleSource;
@@ -32,7 +30,7 @@ use image::RgbImage;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 
-use crate::animate::{to_rgb8, transforms_tensor};
+use gagavatar_avatar::{Avatar, CpuDrive, Drive, Engine, EngineConfig, FlameSource};
 
 pub use crate::eval_args::EvalArgs;
 
@@ -96,13 +94,12 @@ fn load_flame_asset(path: Option<&Path>) -> Result<FlameAsset> {
     }
 }
 
-/// The model side: renders a pair's result.
+/// The model side: renders a pair's result through the pipeline library.
 struct Renderer {
-    model: GagAvatar,
-    flame: FlameModel,
+    engine: Engine,
     source: SampleSource,
-    /// The last source's avatar (pairs are rendered grouped by source).
-    avatar: Option<(String, Avatar)>,
+    /// The last source's avatar and its drive (pairs are rendered grouped by source).
+    avatar: Option<(String, Avatar, CpuDrive)>,
 }
 
 fn transform_of(ds: &Dataset, name: &str) -> Result<[[f64; 4]; 3]> {
@@ -114,37 +111,28 @@ fn transform_of(ds: &Dataset, name: &str) -> Result<[[f64; 4]; 3]> {
 impl Renderer {
     fn render(&mut self, pair: &EvalPair) -> Result<RgbImage> {
         let ds = self.source.dataset.clone();
-        let size = self.model.cfg.image_size;
-        let avatar = match self.avatar.take() {
-            Some((name, av)) if name == pair.source => av,
+        let size = self.engine.image_size();
+        let (avatar, mut drive) = match self.avatar.take() {
+            Some((name, av, drive)) if name == pair.source => (av, drive),
             _ => {
                 let img = Tensor::from_vec(
                     self.source.image(&pair.source)?,
                     (1, 3, size, size),
                     &Device::Cpu,
                 )?;
-                let tm = transforms_tensor(&[transform_of(&ds, &pair.source)?])?;
-                self.model.reconstruct(&img, &tm)?
+                let av = self
+                    .engine
+                    .avatar_from_tensor(&img, ds.record(&pair.source)?)
+                    .with_context(|| format!("source frame `{}`", pair.source))?;
+                let drive = av.cpu_drive();
+                (av, drive)
             }
         };
-        let ps = ds.record(&pair.source)?.params(&self.flame)?;
-        let pd = ds.record(&pair.driver)?.params(&self.flame)?;
-        // Source identity, driver expression, jaw, eyes (spec section 10).
-        let verts = self
-            .flame
-            .forward(&FlameParams {
-                shape: ps.shape,
-                expression: pd.expression,
-                pose: pd.pose,
-                eye: pd.eye,
-            })?
-            .vertices;
-        let tm = transforms_tensor(&[transform_of(&ds, &pair.driver)?])?;
-        let frame = self.model.drive(&avatar, &verts, &tm, Noise::Fixed)?;
-        self.avatar = Some((pair.source.clone(), avatar));
-        let px = to_rgb8(&frame.fine)?
-            .pop()
-            .ok_or_else(|| anyhow::anyhow!("the model returned no image"))?;
+        // Source identity, driver expression, jaw, eyes (spec section 10), driver camera.
+        let what = format!("driver frame `{}`", pair.driver);
+        let codes = avatar.codes(ds.record(&pair.driver)?, &what)?;
+        let px = drive.render(&codes, &transform_of(&ds, &pair.driver)?)?;
+        self.avatar = Some((pair.source.clone(), avatar, drive));
         RgbImage::from_raw(size as u32, size as u32, px)
             .ok_or_else(|| anyhow::anyhow!("the model's image has the wrong size"))
     }
@@ -297,26 +285,21 @@ pub fn run_protocol(a: &EvalArgs, out: &Path) -> Result<Outcome> {
                  baselines)"
             )
         })?;
-        let explicit = a
-            .preset
+        let mut cfg = EngineConfig::new(ckpt);
+        cfg.preset = a.preset.clone();
+        // Without --flame, eval scores with the built-in synthetic asset (its data's).
+        cfg.flame = a
+            .flame
             .as_deref()
-            .map(crate::cmd_model::preset)
-            .transpose()?;
-        let model = gagavatar_net::checkpoint::load_model(ckpt, explicit.as_ref(), &Device::Cpu)
-            .with_context(|| format!("loading {}", ckpt.display()))?;
-        let flame = FlameModel::from_asset(&asset, &Device::Cpu, candle_core::DType::F32)?;
-        if flame.n_vertices != model.cfg.n_vertices {
-            bail!(
-                "the FLAME asset has {} vertices, the model expects {}",
-                flame.n_vertices,
-                model.cfg.n_vertices
-            );
+            .map_or(FlameSource::Synthetic, FlameSource::from_arg);
+        let engine = Engine::open(&cfg).map_err(crate::cmd_model::with_flag_hints)?;
+        for w in engine.warnings() {
+            eprintln!("warning: {w}");
         }
-        let size = model.cfg.image_size;
+        let size = engine.image_size();
         Some(Renderer {
-            source: SampleSource::new(dataset.clone(), Arc::new(flame.clone()), size),
-            model,
-            flame,
+            source: SampleSource::new(dataset.clone(), Arc::new(engine.flame().clone()), size),
+            engine,
             avatar: None,
         })
     };

@@ -5,16 +5,15 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use candle_core::{DType, Device, Tensor};
+use candle_core::{Device, Tensor};
 use clap::Args;
-use gagavatar_flame::{BasisLayout, FlameAsset, FlameModel, LoadOptions, TrackedFrame};
+use gagavatar_flame::{FlameModel, TrackedFrame};
 use gagavatar_formats::image::DecodeOptions;
 use gagavatar_net::checkpoint::{
     self, check_keys, read_weights, write_safetensors, write_tensors, write_torch_checkpoint,
 };
 use gagavatar_net::style_unet::Noise;
 use gagavatar_net::ModelConfig;
-use gagavatar_ops::{resize, ResizeMode};
 
 pub fn preset(name: &str) -> Result<ModelConfig> {
     ModelConfig::preset(name).with_context(|| {
@@ -106,9 +105,9 @@ pub fn run_init_weights(a: InitWeightsArgs) -> Result<()> {
 
 /// Reads an RGB image as `[1, 3, size, size]` in [0, 1], resizing (antialiased bilinear) when
 /// its size differs.
-pub fn read_image(path: &Path, size: usize) -> Result<Tensor> {
-    // Decoded by content with EXIF orientation; anything far above the model size is reduced
-    // during decoding so a huge photo never costs gigabytes.
+/// Decodes a source photo (large ones downscaled while decoding), saying so when it is not
+/// `size` square: the library resizes it (antialiased) to the model's input.
+pub fn read_rgb(path: &Path, size: usize) -> Result<image::RgbImage> {
     let opts = DecodeOptions {
         min_side: 1,
         fit_within: Some((4 * size) as u32),
@@ -121,49 +120,42 @@ pub fn read_image(path: &Path, size: usize) -> Result<Tensor> {
             path.display()
         );
     }
-    image_tensor(&img, size)
+    Ok(img)
 }
 
-/// `[1, 3, size, size]` in [0, 1], resized (antialiased) when the image is not that size.
-pub fn image_tensor(img: &image::RgbImage, size: usize) -> Result<Tensor> {
-    let (w, h) = (img.width() as usize, img.height() as usize);
-    let mut planar = vec![0f32; 3 * w * h];
-    for (i, px) in img.pixels().enumerate() {
-        for c in 0..3 {
-            planar[c * w * h + i] = px[c] as f32 / 255.0;
-        }
-    }
-    let t = Tensor::from_vec(planar, (1, 3, h, w), &Device::Cpu)?;
-    if h != size || w != size {
-        return Ok(resize(&t, size, size, ResizeMode::Antialias)?);
-    }
-    Ok(t)
+/// [`read_rgb`] as the model's input tensor `[1, 3, size, size]`.
+pub fn read_image(path: &Path, size: usize) -> Result<Tensor> {
+    Ok(gagavatar_avatar::image_tensor(
+        &read_rgb(path, size)?,
+        size,
+    )?)
 }
 
-/// `--flame synthetic` names the built-in synthetic asset (`gagavatar flame synth`, seed 0): the
-/// one `synth-data`, `train` and the demo model use, so no file is needed for them.
-pub const SYNTHETIC_FLAME: &str = "synthetic";
+pub use gagavatar_avatar::SYNTHETIC_FLAME;
 
-/// Loads a FLAME asset with the given basis split (or the built-in synthetic one).
+/// A FLAME asset by its command-line name (`synthetic`, or a path).
 pub fn load_flame(path: &Path, n_shape: usize, n_exp: usize) -> Result<FlameModel> {
-    let options = LoadOptions {
-        layout: Some(BasisLayout {
-            shape: n_shape,
-            expression: n_exp,
-        }),
-    };
-    let asset = if path.as_os_str() == SYNTHETIC_FLAME && !path.exists() {
-        gagavatar_flame::synthesize(0)
-    } else {
-        FlameAsset::load(path, &options).with_context(|| {
-            format!(
-                "loading FLAME {} as {n_shape} shape + {n_exp} expression components \
-                 (--n-shape, --n-exp)",
-                path.display()
-            )
-        })?
-    };
-    Ok(FlameModel::from_asset(&asset, &Device::Cpu, DType::F32)?)
+    let source = gagavatar_avatar::FlameSource::from_arg(path);
+    Ok(gagavatar_avatar::load_flame(&source, n_shape, n_exp)
+        .map_err(with_flag_hints)?
+        .0)
+}
+
+/// The library's error, with the command-line flags that fix it named where they exist.
+pub fn with_flag_hints(e: gagavatar_avatar::AvatarError) -> anyhow::Error {
+    match e {
+        gagavatar_avatar::AvatarError::FlameAsset {
+            path,
+            n_shape,
+            n_exp,
+            source,
+        } => anyhow::Error::new(source).context(format!(
+            "loading FLAME {} as {n_shape} shape + {n_exp} expression components (--n-shape, \
+             --n-exp)",
+            path.display()
+        )),
+        other => other.into(),
+    }
 }
 
 pub fn transform_tensor(record: &TrackedFrame, which: &str) -> Result<Tensor> {

@@ -7,7 +7,7 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use gagavatar_flame::TrackedFrame;
-use gagavatar_splat::{Camera, GaussianScene};
+use gagavatar_splat::Camera;
 use gagavatar_video::VideoOptions;
 
 use crate::animate::{read_source_record, record_transform, FrameJob, Session, SourceArgs};
@@ -97,8 +97,8 @@ pub fn run_orbit(a: OrbitArgs) -> Result<()> {
     }
     let mut session = Session::open(&a.src)?;
     session.use_device(&a.device)?;
-    let expr = a.expression.record(&session.source)?;
-    let base = record_transform(&session.source, "the source record")?;
+    let expr = a.expression.record(session.source())?;
+    let base = record_transform(session.source(), "the source record")?;
     let transforms: Vec<_> = (0..a.frames)
         .map(|i| {
             let t = i as f64 / a.frames as f64;
@@ -153,25 +153,11 @@ pub struct ExportPlyArgs {
 }
 
 pub fn run_export_ply(a: ExportPlyArgs) -> Result<()> {
-    let mut session = Session::open(&a.src)?;
-    let expr = a.expression.record(&session.source)?;
-    let verts = session.vertices(&[&expr], &["expression".to_string()])?;
-    let av = &session.avatar;
-    let flat = |t: &candle_core::Tensor| -> Result<Vec<f32>> {
-        Ok(t.to_dtype(candle_core::DType::F32)?
-            .flatten_all()?
-            .to_vec1()?)
-    };
-    let channels = av.colors.dim(2)?;
-    let raw = GaussianScene {
-        means: flat(&av.positions(&verts)?)?,
-        features: flat(&av.colors)?,
-        channels,
-        opacities: flat(&av.opacities)?,
-        scales: flat(&av.scales)?,
-        rotations: flat(&av.rotations)?,
-    };
-    let scene = raw.with_unit_quaternions();
+    let session = Session::open(&a.src)?;
+    let expr = a.expression.record(session.source())?;
+    let codes = session.avatar.codes(&expr, "the expression record")?;
+    let scene = session.avatar.scene(&codes)?;
+    let channels = scene.channels;
     scene
         .save_ply(&a.output)
         .with_context(|| format!("writing {}", a.output.display()))?;

@@ -10,7 +10,7 @@ use gagavatar_video::read::{ReadOptions, Start, VideoReader};
 use gagavatar_video::VideoOptions;
 
 use crate::animate::{
-    record_transform, resolve_source, side_by_side, FrameJob, Session, SourceArgs,
+    record_transform, resolve_source, side_by_side, tracking_flame, FrameJob, Session, SourceArgs,
 };
 use crate::tracking;
 
@@ -87,8 +87,13 @@ pub fn run(a: ReenactArgs) -> Result<()> {
     if a.batch == 0 {
         bail!("--batch must be at least 1");
     }
-    // The source first: a photo without a face fails before the driver is tracked.
-    let source = resolve_source(&a.src)?;
+    // The model and FLAME first (the tracker uses the FLAME the avatar is driven with), then the
+    // source: a photo without a face fails before the driver is tracked.
+    let t0 = Instant::now();
+    let engine = a.src.open_engine()?;
+    let load = t0.elapsed();
+    let source = resolve_source(&a.src, &engine)?;
+    let flame = tracking_flame(&engine);
     let driver_path = match (&a.driver, &a.driver_video) {
         (Some(d), _) => d.clone(),
         (None, Some(v)) => v.clone(),
@@ -101,7 +106,7 @@ pub fn run(a: ReenactArgs) -> Result<()> {
     let driver = if is_driving_sequence(&driver_path) {
         DriverSequence::open(&driver_path)?
     } else {
-        let tracked = tracking::tracked_inline(&driver_path, &a.src.flame, "driver", false)?;
+        let tracked = tracking::tracked_inline(&driver_path, &flame, "driver", false)?;
         let mut d = DriverSequence::open(&tracked.dir)?;
         d.fps = tracked.meta.fps;
         d
@@ -158,7 +163,7 @@ pub fn run(a: ReenactArgs) -> Result<()> {
         )?);
     }
     let fps = a.fps.unwrap_or(driver.fps);
-    let mut session = Session::open_resolved(&a.src, source)?;
+    let mut session = Session::with_source(&engine, source, load)?;
     session.use_device(&a.device)?;
     let size = session.image_size();
     let width = if show_driver { 2 * size } else { size };

@@ -38,10 +38,10 @@ use sha2::{Digest, Sha256};
 use crate::cmd_model::SYNTHETIC_FLAME;
 use crate::progress::{progress, spinner};
 
-/// Bump when the tracker's results change for the same input (a new fit, crop or matte), so
-/// cached tracks made by older builds are not reused. The cache key also holds the crate
-/// version and the tracking options.
-pub const TRACKER_REVISION: u32 = 4;
+/// Bump when the tracker's results change for the same input (a new fit, crop or matte, or a new
+/// field in its output: 5 writes the video's frame rate into track.json), so cached tracks made by
+/// older builds are not reused. The cache key also holds the crate version and the tracking options.
+pub const TRACKER_REVISION: u32 = 5;
 /// Photos larger than this (long side) are tracked downscaled; the networks see at most 256 px.
 const WORK_SIDE: u32 = 4096;
 /// Smaller images are refused: no face fits in them.
@@ -308,6 +308,9 @@ impl Tracker {
                 (v, None, thread_cpu_seconds() - c0)
             }
         };
+        // The video's exact rate goes into track.json, so driving from the folder keeps it.
+        let mut video = video;
+        video.fps = Some(fps);
         if let Some(i) = (0..n).find(|&i| video.frames[i].window != windows[i]) {
             bail!("internal: frame {i}'s crop window differs between the crop and the fit");
         }

@@ -1,0 +1,222 @@
+//! The pipeline in-process on the shipped demo model and its real source photo (the CLI tests
+//! keep to the CLI itself): loading with the FLAME asset the weights name, reconstructing once,
+//! rendering single frames and batches on the CPU, the GPU drive against the CPU one through
+//! the same trait, and every bad input as a typed error.
+
+use std::path::{Path, PathBuf};
+
+use gagavatar_avatar::{AvatarError, Camera, Drive, Engine, EngineConfig, FlameSource, FrameCodes};
+use gagavatar_flame::TrackedFrame;
+
+/// Batched GEMMs may sum in another order than single frames: at most one 8-bit level.
+const BATCH_LEVELS: i32 = 1;
+/// The GPU's fine image is within 1e-5 of the CPU's at this size (crates/gpu's FINE_TOL), which
+/// can still flip a rounding: one 8-bit level.
+const GPU_LEVELS: i32 = 1;
+
+fn demo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/demo")
+}
+
+fn source() -> (image::RgbImage, TrackedFrame) {
+    let img = image::open(demo().join("source.png")).unwrap().to_rgb8();
+    let rec = TrackedFrame::from_json_file(&demo().join("source.json")).unwrap();
+    (img, rec)
+}
+
+fn engine() -> Engine {
+    Engine::open(&EngineConfig::new(demo().join("weights.safetensors"))).unwrap()
+}
+
+/// The source's codes with the expression scaled and the jaw opened by `jaw` radians.
+fn codes(base: &FrameCodes, scale: f32, jaw: f32) -> FrameCodes {
+    let mut c = base.clone();
+    for v in &mut c.expression {
+        *v *= scale;
+    }
+    c.pose[3] += jaw;
+    c
+}
+
+fn max_level_diff(a: &[u8], b: &[u8]) -> i32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (*x as i32 - *y as i32).abs())
+        .max()
+        .unwrap_or(0)
+}
+
+#[test]
+fn the_demo_model_opens_with_the_flame_its_weights_name() {
+    let e = engine();
+    assert_eq!(e.flame_label(), "the built-in synthetic asset");
+    assert!(e.warnings().is_empty(), "{:?}", e.warnings());
+    assert_eq!(e.image_size(), 64);
+}
+
+#[test]
+fn one_avatar_renders_single_frames_and_batches_alike() {
+    let e = engine();
+    let (img, rec) = source();
+    let avatar = e.avatar(&img, &rec).unwrap();
+    let base = avatar.codes(&rec, "source").unwrap();
+    let cam = avatar.source_camera().unwrap();
+    let mut turned: Camera = cam;
+    // A small turn of the camera about the vertical axis.
+    let (s, c) = 0.15f64.sin_cos();
+    for row in turned.iter_mut() {
+        let (x, z) = (row[0], row[2]);
+        row[0] = c * x + s * z;
+        row[2] = -s * x + c * z;
+    }
+    let frames: Vec<(FrameCodes, Camera)> = vec![
+        (base.clone(), cam),
+        (codes(&base, 2.0, 0.2), cam),
+        (codes(&base, 0.0, 0.0), turned),
+    ];
+    let mut drive = avatar.cpu_drive();
+    let batch = drive.render_batch(&frames).unwrap();
+    assert_eq!(batch.len(), 3);
+    for (i, (c, cam)) in frames.iter().enumerate() {
+        let single = drive.render(c, cam).unwrap();
+        assert_eq!(single.len(), 3 * 64 * 64);
+        let d = max_level_diff(&single, &batch[i]);
+        assert!(
+            d <= BATCH_LEVELS,
+            "frame {i}: batch vs single differ by {d} levels"
+        );
+    }
+    // Fixed noise: the same frame twice is the same bytes; other codes or cameras differ.
+    assert_eq!(drive.render(&base, &cam).unwrap(), batch[0]);
+    assert_ne!(
+        batch[0], batch[1],
+        "a new expression and jaw changed nothing"
+    );
+    assert_ne!(batch[0], batch[2], "a new camera changed nothing");
+    let t = drive.times();
+    assert_eq!(t.frames, 3 + 3 + 1);
+    assert!(t.renderer > std::time::Duration::ZERO && t.gpu.is_zero());
+}
+
+#[test]
+fn the_avatar_matches_the_model_run_by_hand() {
+    // The library adds no step of its own: its frame is the model's reconstruct + drive.
+    let e = engine();
+    let (img, rec) = source();
+    let avatar = e.avatar(&img, &rec).unwrap();
+    let model = e.model();
+    let image = gagavatar_avatar::image_tensor(&img, 64).unwrap();
+    let cam = avatar.source_camera().unwrap();
+    let tm = gagavatar_avatar::transforms_tensor(&[cam]).unwrap();
+    let gaussians = model.reconstruct(&image, &tm).unwrap();
+    let verts = e
+        .flame()
+        .forward(&rec.params(e.flame()).unwrap())
+        .unwrap()
+        .vertices;
+    let by_hand = model
+        .drive(
+            &gaussians,
+            &verts,
+            &tm,
+            gagavatar_net::style_unet::Noise::Fixed,
+        )
+        .unwrap();
+    let want = gagavatar_avatar::to_rgb8(&by_hand.fine)
+        .unwrap()
+        .pop()
+        .unwrap();
+    let got = avatar
+        .cpu_drive()
+        .render(&avatar.codes(&rec, "source").unwrap(), &cam)
+        .unwrap();
+    let d = max_level_diff(&want, &got);
+    // FLAME with a cached identity sums the shape basis apart from the expression's.
+    assert!(d <= BATCH_LEVELS, "library vs model by hand: {d} levels");
+}
+
+#[test]
+fn the_gpu_drive_renders_what_the_cpu_drive_renders() {
+    let gpu = match gagavatar_gpu::Gpu::new(gagavatar_gpu::AdapterPolicy::AllowCpu) {
+        Ok(g) => std::sync::Arc::new(g),
+        Err(e) => {
+            gagavatar_testkit::optional_path(
+                "the_gpu_drive_renders_what_the_cpu_drive_renders",
+                false,
+                &format!("no GPU device: {e}"),
+                gagavatar_testkit::REQUIRE_GPU,
+            );
+            return;
+        }
+    };
+    let e = engine();
+    let (img, rec) = source();
+    let avatar = e.avatar(&img, &rec).unwrap();
+    let base = avatar.codes(&rec, "source").unwrap();
+    let cam = avatar.source_camera().unwrap();
+    let frames = vec![(base.clone(), cam), (codes(&base, 1.5, 0.1), cam)];
+    let mut cpu = avatar.cpu_drive();
+    let mut dev = avatar
+        .gpu_drive(gpu, &gagavatar_gpu::Tuning::default())
+        .unwrap();
+    let drives: [&mut dyn Drive; 2] = [&mut cpu, &mut dev];
+    let [a, b] = drives.map(|d| d.render_batch(&frames).unwrap());
+    for (i, (x, y)) in a.iter().zip(&b).enumerate() {
+        let d = max_level_diff(x, y);
+        assert!(
+            d <= GPU_LEVELS,
+            "frame {i}: CPU vs GPU differ by {d} levels"
+        );
+    }
+    assert_eq!(dev.times().frames, 2);
+    assert!(dev.times().gpu > std::time::Duration::ZERO);
+}
+
+#[test]
+fn bad_inputs_are_typed_errors() {
+    let e = engine();
+    let (img, rec) = source();
+    let avatar = e.avatar(&img, &rec).unwrap();
+    let base = avatar.codes(&rec, "source").unwrap();
+    let cam = avatar.source_camera().unwrap();
+    let mut drive = avatar.cpu_drive();
+
+    let mut short = base.clone();
+    short.expression.pop();
+    let err = drive.render(&short, &cam).unwrap_err();
+    assert!(matches!(err, AvatarError::Input { .. }), "{err}");
+    assert!(err.to_string().contains("expression"), "{err}");
+
+    let mut nan = cam;
+    nan[1][3] = f64::NAN;
+    let err = drive.render(&base, &nan).unwrap_err();
+    assert!(err.to_string().contains("not finite"), "{err}");
+    assert!(drive.render_batch(&[]).is_err());
+
+    let mut no_camera = rec.clone();
+    no_camera.transform_matrix = None;
+    let err = e.avatar(&img, &no_camera).err().unwrap();
+    assert!(err.to_string().contains("transform_matrix"), "{err}");
+    let err = e.avatar(&image::RgbImage::new(0, 0), &rec).err().unwrap();
+    assert!(err.to_string().contains("empty"), "{err}");
+    // Any other size is resized, not refused.
+    assert!(e.avatar(&image::RgbImage::new(90, 70), &rec).is_ok());
+
+    let err = Engine::open(&EngineConfig::new(demo().join("no_such.safetensors")))
+        .err()
+        .unwrap();
+    assert!(matches!(err, AvatarError::Weights { .. }), "{err}");
+    let mut cfg = EngineConfig::new(demo().join("weights.safetensors"));
+    cfg.flame = FlameSource::File(demo().join("no_such_flame.pt"));
+    let err = Engine::open(&cfg).err().unwrap();
+    assert!(matches!(err, AvatarError::FlameAsset { .. }), "{err}");
+    assert!(
+        std::error::Error::source(&err).is_some(),
+        "the cause is kept"
+    );
+    cfg.flame = FlameSource::Synthetic;
+    cfg.preset = Some("huge".into());
+    let err = Engine::open(&cfg).err().unwrap();
+    assert!(err.to_string().contains("unknown preset"), "{err}");
+}
