@@ -3,7 +3,9 @@
 //! A driving sequence is either
 //! * a release tracked folder: `smoothed.pkl` (preferred) or `optim.pkl`, with an optional
 //!   `img_lmdb/` holding the driver frames under the same names; frames in natural name
-//!   order; 25 fps (the release's video rate); a path to the `.pkl` itself works too;
+//!   order; the frame rate our tracker recorded in the folder's `track.json` (`"fps"`, the
+//!   source video's exact rate), else 25 fps (the release's video rate); a path to the `.pkl`
+//!   itself works too;
 //! * a JSON file `{"fps": 25, "frames": [record, ...]}`, each record a tracked-frame JSON record
 //!   (`TrackedFrame`) that must carry `transform_matrix` (the driving camera), and may carry
 //!   `"name"` and `"image"` (a path relative to the JSON file). Either every frame names an
@@ -24,6 +26,32 @@ use gagavatar_formats::lmdb::LmdbReader;
 
 /// The release's video frame rate, used for pickled sequences (which carry none).
 pub const DEFAULT_FPS: f64 = 25.0;
+/// The file our tracker writes beside the pickles; its `"fps"` is the source video's rate.
+const TRACK_JSON: &str = "track.json";
+
+/// The `"fps"` of a tracked folder's `track.json`: `None` when there is no such file or it
+/// records none (a photo, or a folder tracked before the rate was kept); an error when the
+/// file is unreadable or the rate is not a positive number.
+fn tracked_fps(path: &Path) -> Result<Option<f64>> {
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(path).map_err(io_err(path, "cannot read"))?;
+    let json_err = |reason: String| DataError::Json {
+        path: path.to_owned(),
+        reason,
+    };
+    let v: Value = serde_json::from_str(&text).map_err(|e| json_err(e.to_string()))?;
+    match v.get("fps") {
+        None | Some(Value::Null) => Ok(None),
+        Some(f) => match f.as_f64() {
+            Some(fps) if fps.is_finite() && fps > 0.0 => Ok(Some(fps)),
+            _ => Err(json_err(format!(
+                "`fps` is {f}, expected a positive number"
+            ))),
+        },
+    }
+}
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct DriverFrame {
@@ -89,7 +117,11 @@ impl DriverSequence {
     pub fn open(path: &Path) -> Result<Self> {
         if path.is_dir() {
             let pkl = tracked_pickle(path, ["smoothed.pkl", "optim.pkl"])?;
-            return Self::from_pickle(path, &pkl, path);
+            let mut seq = Self::from_pickle(path, &pkl, path)?;
+            if let Some(fps) = tracked_fps(&path.join(TRACK_JSON))? {
+                seq.fps = fps;
+            }
+            return Ok(seq);
         }
         let ext = path
             .extension()

@@ -89,6 +89,32 @@ fn smoothed_is_preferred_and_images_are_optional() {
     );
 }
 
+#[test]
+fn a_tracked_folder_keeps_the_rate_its_track_json_records() {
+    let dir = TempDir::new("driver-fps");
+    std::fs::copy(data("records_p4.pkl"), dir.path().join("optim.pkl")).unwrap();
+    let track = dir.path().join("track.json");
+    // No track.json (a release folder), or one without a rate (a photo): 25 fps.
+    assert_eq!(DriverSequence::open(dir.path()).unwrap().fps, 25.0);
+    std::fs::write(&track, r#"{"kind": "photo"}"#).unwrap();
+    assert_eq!(DriverSequence::open(dir.path()).unwrap().fps, 25.0);
+    std::fs::write(&track, r#"{"kind": "video", "fps": 29.97002997002997}"#).unwrap();
+    assert_eq!(
+        DriverSequence::open(dir.path()).unwrap().fps,
+        30000.0 / 1001.0
+    );
+    for bad in [
+        r#"{"fps": 0}"#,
+        r#"{"fps": -5}"#,
+        r#"{"fps": "fast"}"#,
+        "not json",
+    ] {
+        std::fs::write(&track, bad).unwrap();
+        let e = DriverSequence::open(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("track.json"), "{bad}: {e}");
+    }
+}
+
 fn record_json(k: usize, with_image: bool, name: Option<&str>) -> serde_json::Value {
     let mut v = serde_json::json!({
         "shapecode": vec![0.01 * k as f64; 300],

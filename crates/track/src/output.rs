@@ -150,6 +150,10 @@ pub struct TrackJson {
     pub coordinates: String,
     /// Frames the video's shape was solved on.
     pub keyframes: Vec<usize>,
+    /// The source video's frame rate (absent for a photo, and in folders written before it was
+    /// kept).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fps: Option<f64>,
     pub frames: Vec<JsonFrame>,
 }
 
@@ -279,6 +283,7 @@ pub fn write_photo(dir: &Path, name: &str, photo: &TrackedPhoto, crop: &RgbImage
         name: name.clone(),
         coordinates: COORDINATES.into(),
         keyframes: vec![0],
+        fps: None,
         frames: vec![json_frame(&name, 0, &photo.frame)?],
     };
     write_dir(dir, |tmp| {
@@ -354,6 +359,7 @@ pub fn write_video_jpegs(
         name: name.clone(),
         coordinates: COORDINATES.into(),
         keyframes: video.keyframes.clone(),
+        fps: video.fps,
         frames: video
             .frames
             .iter()

@@ -81,6 +81,9 @@ pub struct TrackedVideo {
     pub shape: Vec<f64>,
     /// Frames the shape was solved on.
     pub keyframes: Vec<usize>,
+    /// The source video's frame rate, when the caller knows it (written to `track.json`, so
+    /// driving from the tracked folder keeps the video's timing).
+    pub fps: Option<f64>,
 }
 
 /// The release record of a fitted state (global pose zero, jaw in `posecode[3..6]`), codes
@@ -314,6 +317,7 @@ pub fn track_video(
         raw_records,
         shape: seq.shape,
         keyframes: seq.keyframes,
+        fps: None,
     })
 }
 

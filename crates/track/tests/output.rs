@@ -128,6 +128,8 @@ fn photo_folder_reads_back() {
     let d = DriverSequence::open(&dir).unwrap();
     assert_eq!(d.frames.len(), 1);
     assert!(d.has_images());
+    // A photo has no rate: the release's default.
+    assert_eq!((tj.fps, d.fps), (None, gagavatar_data::driver::DEFAULT_FPS));
     keep_sample(&dir, "photo");
 }
 
@@ -135,7 +137,10 @@ fn photo_folder_reads_back() {
 fn video_folder_reads_back_and_is_all_or_nothing() {
     let t = TempDir::new("video");
     let dir = t.0.join("clip");
-    let v = video(5);
+    let mut v = video(5);
+    // An NTSC clip: the exact rate survives the folder (not the release's 25 fps default).
+    let ntsc = 30000.0 / 1001.0;
+    v.fps = Some(ntsc);
     let img = frame_image();
     let crops = v.frames.iter().map(|f| crop_image(&img, &f.window));
     write_video(&dir, "clip", &v, crops).unwrap();
@@ -155,6 +160,8 @@ fn video_folder_reads_back_and_is_all_or_nothing() {
     assert!(!tj.frames[2].face_found && tj.frames[2].landmarks_detected.is_none());
     let d = DriverSequence::open(&dir).unwrap();
     assert_eq!(d.frames.len(), 5);
+    assert_eq!(d.fps, ntsc);
+    assert_eq!(tj.fps, Some(ntsc));
 
     // Rewriting over our own folder is allowed; a failing crop source leaves the old one.
     let bad = (0..5).map(|i| {
