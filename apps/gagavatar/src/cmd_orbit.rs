@@ -7,7 +7,6 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use gagavatar_flame::TrackedFrame;
-use gagavatar_splat::Camera;
 use gagavatar_video::VideoOptions;
 
 use crate::animate::{read_source_record, record_transform, FrameJob, Session, SourceArgs};
@@ -51,20 +50,7 @@ pub struct OrbitArgs {
     pub no_watermark: bool,
 }
 
-/// The source camera with the world (head) rotated about the origin, where tracked data puts
-/// the head: by `yaw` about Y, then `pitch` about X, as in `Camera::look_at_origin_matrix`.
-pub fn orbit_transform(base: &[[f64; 4]; 3], yaw: f64, pitch: f64) -> [[f64; 4]; 3] {
-    // A transform [R | T] maps p to R^T p + T; rotating the world by O first gives R^T O p,
-    // i.e. R' = O^T R. The look-at matrix of distance 0 stores exactly O^T in its 3x3 block.
-    let ot = Camera::look_at_origin_matrix(0.0, yaw, pitch);
-    let mut out = *base;
-    for i in 0..3 {
-        for j in 0..3 {
-            out[i][j] = (0..3).map(|k| ot[i][k] * base[k][j]).sum();
-        }
-    }
-    out
-}
+use gagavatar_avatar::orbit::orbit_cameras;
 
 /// The expression (with jaw and eyes) an orbit or export uses.
 #[derive(Debug, Default, Args)]
@@ -99,17 +85,7 @@ pub fn run_orbit(a: OrbitArgs) -> Result<()> {
     session.use_device(&a.device)?;
     let expr = a.expression.record(session.source())?;
     let base = record_transform(session.source(), "the source record")?;
-    let transforms: Vec<_> = (0..a.frames)
-        .map(|i| {
-            let t = i as f64 / a.frames as f64;
-            let tau = std::f64::consts::TAU;
-            orbit_transform(
-                &base,
-                a.yaw.to_radians() * (tau * t).sin(),
-                a.pitch.to_radians() * (2.0 * tau * t).sin(),
-            )
-        })
-        .collect();
+    let transforms = orbit_cameras(&base, a.yaw, a.pitch, a.frames);
     let jobs: Vec<FrameJob> = transforms
         .into_iter()
         .enumerate()
@@ -167,48 +143,4 @@ pub fn run_export_ply(a: ExportPlyArgs) -> Result<()> {
         scene.len()
     );
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn orbit_of_zero_angles_is_the_base_and_keeps_the_distance() {
-        let base = Camera::look_at_origin_matrix(9.0, 0.2, -0.1);
-        let same = orbit_transform(&base, 0.0, 0.0);
-        assert_eq!(same, base);
-        // The camera centre stays at the same distance from the head for any orbit angle.
-        let dist = |tm: &[[f64; 4]; 3]| {
-            let c = Camera::from_transform_matrix(tm, 12.0, 64, 64)
-                .unwrap()
-                .center();
-            (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt()
-        };
-        let moved = orbit_transform(&base, 0.5, 0.3);
-        assert!((dist(&moved) - dist(&base)).abs() < 1e-9);
-        assert!(moved != base);
-    }
-
-    #[test]
-    fn orbit_matches_look_at_from_the_front() {
-        // From the look-at camera with R = I (it faces the back of the head; the release's
-        // frontal camera is yaw = pi), orbiting by (yaw, pitch) about the head is the look-at
-        // camera with the same angles.
-        let front = Camera::look_at_origin_matrix(9.0, 0.0, 0.0);
-        for (yaw, pitch) in [(0.4, 0.0), (0.0, 0.3), (-0.5, 0.2)] {
-            let want = Camera::look_at_origin_matrix(9.0, yaw, pitch);
-            let got = orbit_transform(&front, yaw, pitch);
-            for i in 0..3 {
-                for j in 0..4 {
-                    assert!(
-                        (got[i][j] - want[i][j]).abs() < 1e-12,
-                        "({yaw}, {pitch}) [{i}][{j}] expected {} got {}",
-                        want[i][j],
-                        got[i][j]
-                    );
-                }
-            }
-        }
-    }
 }

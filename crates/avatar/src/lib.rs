@@ -24,6 +24,7 @@ pub mod convert;
 pub mod drive;
 pub mod engine;
 mod error;
+pub mod orbit;
 
 pub use avatar::Avatar;
 pub use convert::{image_tensor, to_rgb8, transforms_tensor};
