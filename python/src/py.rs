@@ -1,0 +1,579 @@
+//! The bindings. Records cross the boundary as JSON text in the release's field names (the
+//! Python side turns them into dicts of NumPy arrays), images and frames as `uint8` arrays
+//! `[H, W, 3]` / `[N, H, W, 3]`. Every computation releases the GIL.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use numpy::{
+    PyArray1, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3, PyReadonlyArray4,
+    PyUntypedArrayMethods,
+};
+use pyo3::create_exception;
+use pyo3::exceptions::PyException;
+use pyo3::prelude::*;
+
+use gagavatar_avatar::orbit::orbit_cameras;
+use gagavatar_avatar::{
+    Camera, CpuDrive, Drive, Engine as CoreEngine, EngineConfig, FlameSource, FrameCodes, GpuDrive,
+};
+use gagavatar_flame::TrackedFrame;
+use gagavatar_gpu::{AdapterPolicy, Gpu};
+use gagavatar_net::style_unet::Noise;
+
+create_exception!(
+    gagavatar,
+    Error,
+    PyException,
+    "Every failure of the package: one line, as the CLI prints it."
+);
+
+/// The error and its causes on one line (`a: b: c`), as the CLI prints them.
+fn one_line(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut s = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        s.push_str(": ");
+        s.push_str(&c.to_string());
+        cause = c.source();
+    }
+    s
+}
+
+fn to_py(e: impl std::error::Error + 'static) -> PyErr {
+    Error::new_err(one_line(&e))
+}
+
+/// A result with its error already turned into the one-line message (small to move out of a
+/// closure that ran without the GIL).
+fn lined<T>(r: Result<T, impl std::error::Error + 'static>) -> Result<T, String> {
+    r.map_err(|e| one_line(&e))
+}
+
+fn bad(msg: impl Into<String>) -> PyErr {
+    Error::new_err(msg.into())
+}
+
+fn record_from_json(text: &str, what: &str) -> PyResult<TrackedFrame> {
+    TrackedFrame::from_json_str(text).map_err(|e| bad(format!("{what}: {}", one_line(&e))))
+}
+
+fn record_to_json(r: &TrackedFrame) -> String {
+    serde_json::json!({
+        "shapecode": r.shapecode,
+        "expcode": r.expcode,
+        "posecode": r.posecode,
+        "eyecode": r.eyecode,
+        "transform_matrix": r.transform_matrix,
+        "bbox": r.bbox,
+    })
+    .to_string()
+}
+
+/// `frames` RGB u8 frames of `size` x `size` as one `[N, size, size, 3]` array.
+fn frames_array<'py>(
+    py: Python<'py>,
+    frames: Vec<Vec<u8>>,
+    size: usize,
+) -> PyResult<Bound<'py, PyAny>> {
+    let n = frames.len();
+    let flat: Vec<u8> = frames.into_iter().flatten().collect();
+    let arr = PyArray1::from_vec(py, flat).reshape([n, size, size, 3])?;
+    Ok(arr.into_any())
+}
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum DeviceChoice {
+    Cpu,
+    Gpu,
+    Auto,
+}
+
+/// The model and FLAME, loaded once.
+#[pyclass(module = "gagavatar._native")]
+pub struct Engine {
+    inner: Arc<CoreEngine>,
+    device: DeviceChoice,
+    gpu: Option<Arc<Gpu>>,
+}
+
+#[pymethods]
+impl Engine {
+    #[new]
+    #[pyo3(signature = (ckpt, flame=None, device="cpu", preset=None, fresh_noise=false))]
+    fn new(
+        py: Python<'_>,
+        ckpt: PathBuf,
+        flame: Option<PathBuf>,
+        device: &str,
+        preset: Option<String>,
+        fresh_noise: bool,
+    ) -> PyResult<Self> {
+        let device = match device {
+            "cpu" => DeviceChoice::Cpu,
+            "gpu" => DeviceChoice::Gpu,
+            "auto" => DeviceChoice::Auto,
+            other => {
+                return Err(bad(format!(
+                    "device must be cpu, gpu or auto, not `{other}`"
+                )))
+            }
+        };
+        let mut cfg = EngineConfig::new(ckpt);
+        cfg.flame = flame
+            .as_deref()
+            .map_or(FlameSource::FromWeights, FlameSource::from_arg);
+        cfg.preset = preset;
+        cfg.noise = if fresh_noise {
+            Noise::Fresh
+        } else {
+            Noise::Fixed
+        };
+        let inner = py.detach(|| lined(CoreEngine::open(&cfg))).map_err(bad)?;
+        let gpu = match device {
+            DeviceChoice::Cpu => None,
+            DeviceChoice::Gpu => Some(Arc::new(
+                py.detach(|| Gpu::new(AdapterPolicy::AllowCpu))
+                    .map_err(to_py)?,
+            )),
+            DeviceChoice::Auto => py
+                .detach(|| Gpu::new(AdapterPolicy::RealOnly))
+                .ok()
+                .map(Arc::new),
+        };
+        Ok(Engine {
+            inner: Arc::new(inner),
+            device,
+            gpu,
+        })
+    }
+
+    /// The side of the square images the model reads and renders.
+    #[getter]
+    fn image_size(&self) -> usize {
+        self.inner.image_size()
+    }
+
+    /// What loading noticed but did not stop for (a FLAME asset the weights were probably not
+    /// trained with).
+    #[getter]
+    fn warnings(&self) -> Vec<String> {
+        self.inner.warnings().to_vec()
+    }
+
+    /// Which FLAME asset drives the avatars.
+    #[getter]
+    fn flame(&self) -> String {
+        self.inner.flame_label().to_string()
+    }
+
+    /// Where frames are rendered: `cpu`, or the GPU adapter's description.
+    #[getter]
+    fn device(&self) -> String {
+        match &self.gpu {
+            Some(g) => g.describe(),
+            None if self.device == DeviceChoice::Auto => "cpu (no GPU adapter found)".into(),
+            None => "cpu".into(),
+        }
+    }
+
+    /// Reconstructs an avatar from a crop `[H, W, 3]` uint8 and its record (JSON text).
+    fn _avatar_from_array(
+        &self,
+        py: Python<'_>,
+        image: PyReadonlyArray3<'_, u8>,
+        record_json: &str,
+    ) -> PyResult<Avatar> {
+        let shape = image.shape();
+        if shape[2] != 3 {
+            return Err(bad(format!(
+                "the image must be [H, W, 3] uint8 RGB, got {:?}",
+                shape
+            )));
+        }
+        let (h, w) = (shape[0] as u32, shape[1] as u32);
+        let data: Vec<u8> = image.as_array().iter().copied().collect();
+        let img = image::RgbImage::from_raw(w, h, data)
+            .ok_or_else(|| bad("the image data does not fill [H, W, 3]"))?;
+        let record = record_from_json(record_json, "the source record")?;
+        self.make_avatar(py, img, record)
+    }
+
+    /// Reconstructs an avatar from an image file (any common format) and its record (JSON).
+    fn _avatar_from_file(
+        &self,
+        py: Python<'_>,
+        path: PathBuf,
+        record_json: &str,
+    ) -> PyResult<Avatar> {
+        let size = self.inner.image_size() as u32;
+        let opts = gagavatar_formats::image::DecodeOptions {
+            min_side: 1,
+            fit_within: Some(4 * size),
+        };
+        let img = py
+            .detach(|| gagavatar_formats::image::read_image(&path, &opts))
+            .map_err(to_py)?
+            .rgb;
+        let record = record_from_json(record_json, "the source record")?;
+        self.make_avatar(py, img, record)
+    }
+}
+
+impl Engine {
+    fn make_avatar(
+        &self,
+        py: Python<'_>,
+        img: image::RgbImage,
+        record: TrackedFrame,
+    ) -> PyResult<Avatar> {
+        let engine = self.inner.clone();
+        let gpu = self.gpu.clone();
+        py.detach(move || build_avatar(&engine, gpu, &img, &record))
+            .map_err(bad)
+    }
+}
+
+/// Reconstructs an avatar and opens its drive (on `gpu` when given); errors as one line.
+fn build_avatar(
+    engine: &CoreEngine,
+    gpu: Option<Arc<Gpu>>,
+    img: &image::RgbImage,
+    record: &TrackedFrame,
+) -> Result<Avatar, String> {
+    let avatar = lined(engine.avatar(img, record))?;
+    let drive = match gpu {
+        Some(g) => {
+            let tuning = lined(gagavatar_gpu::Tuning::from_env())?;
+            Drives::Gpu(Box::new(lined(avatar.gpu_drive(g, &tuning))?))
+        }
+        None => Drives::Cpu(Box::new(avatar.cpu_drive())),
+    };
+    Ok(Avatar {
+        avatar,
+        drive,
+        library: std::time::Duration::ZERO,
+    })
+}
+
+enum Drives {
+    Cpu(Box<CpuDrive>),
+    Gpu(Box<GpuDrive>),
+}
+
+impl Drives {
+    fn get(&mut self) -> &mut dyn Drive {
+        match self {
+            Drives::Cpu(d) => d.as_mut(),
+            Drives::Gpu(d) => d.as_mut(),
+        }
+    }
+}
+
+/// A reconstructed avatar and its drive.
+#[pyclass(module = "gagavatar._native")]
+pub struct Avatar {
+    avatar: gagavatar_avatar::Avatar,
+    drive: Drives,
+    /// Wall time inside the library's `render_batch` calls.
+    library: std::time::Duration,
+}
+
+fn watermark(frames: &mut [Vec<u8>], size: usize) {
+    for f in frames {
+        gagavatar_video::draw_watermark(f, size, size, gagavatar_video::WATERMARK_TEXT);
+    }
+}
+
+#[pymethods]
+impl Avatar {
+    /// The source record (JSON text).
+    fn _source_json(&self) -> String {
+        record_to_json(self.avatar.source())
+    }
+
+    #[getter]
+    fn image_size(&self) -> usize {
+        self.avatar.image_size()
+    }
+
+    /// Frames rendered so far by this avatar's drive.
+    #[getter]
+    fn frames_rendered(&mut self) -> usize {
+        self.drive.get().times().frames
+    }
+
+    /// Seconds spent inside the Rust library's `render_batch` (codes in, RGB frames out), for
+    /// measuring what the Python layer adds.
+    #[getter]
+    fn library_seconds(&self) -> f64 {
+        self.library.as_secs_f64()
+    }
+
+    /// Renders codes given as arrays, one row a frame: expression `[N, E]` and pose and eye
+    /// codes `[N, 6]` (float32, the release's `expcode`, `posecode`, `eyecode`), cameras
+    /// `[N, 3, 4]` (float64). Each row goes through the same checks as a record.
+    #[pyo3(signature = (expcode, posecode, eyecode, cameras, batch=4, watermark=true))]
+    #[allow(clippy::too_many_arguments)]
+    fn _render_arrays<'py>(
+        &mut self,
+        py: Python<'py>,
+        expcode: PyReadonlyArray2<'_, f32>,
+        posecode: PyReadonlyArray2<'_, f32>,
+        eyecode: PyReadonlyArray2<'_, f32>,
+        cameras: PyReadonlyArray3<'_, f64>,
+        batch: usize,
+        watermark: bool,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let n = expcode.shape()[0];
+        let shapes_ok =
+            posecode.shape() == [n, 6] && eyecode.shape() == [n, 6] && cameras.shape() == [n, 3, 4];
+        if !shapes_ok {
+            return Err(bad(format!(
+                "codes of {n} frames need posecode [{n}, 6], eyecode [{n}, 6] and cameras \
+                 [{n}, 3, 4]; got {:?}, {:?}, {:?}",
+                posecode.shape(),
+                eyecode.shape(),
+                cameras.shape()
+            )));
+        }
+        let (e, p, y, c) = (
+            expcode.as_array(),
+            posecode.as_array(),
+            eyecode.as_array(),
+            cameras.as_array(),
+        );
+        let n_exp = self.avatar.flame().config.n_exp;
+        let mut jobs: Vec<(FrameCodes, Camera)> = Vec::with_capacity(n);
+        for i in 0..n {
+            let mut cam = [[0.0; 4]; 3];
+            for (r, row) in cam.iter_mut().enumerate() {
+                for (k, v) in row.iter_mut().enumerate() {
+                    *v = c[[i, r, k]];
+                }
+            }
+            let f64s = |a: &numpy::ndarray::ArrayView2<'_, f32>| -> Vec<f64> {
+                a.row(i).iter().map(|&v| v as f64).collect()
+            };
+            let record = TrackedFrame {
+                shapecode: Vec::new(),
+                expcode: f64s(&e),
+                posecode: f64s(&p),
+                eyecode: f64s(&y),
+                transform_matrix: Some(cam),
+                bbox: None,
+            };
+            record
+                .validate()
+                .map_err(|err| bad(format!("frame {i}: {}", one_line(&err))))?;
+            let mut expression: Vec<f32> = e.row(i).to_vec();
+            if expression.len() > n_exp {
+                return Err(bad(format!(
+                    "frame {i}: expcode has {} values, this FLAME has {n_exp}",
+                    expression.len()
+                )));
+            }
+            expression.resize(n_exp, 0.0);
+            let six = |a: &numpy::ndarray::ArrayView2<'_, f32>| -> [f32; 6] {
+                std::array::from_fn(|k| a[[i, k]])
+            };
+            let codes = FrameCodes {
+                expression,
+                pose: six(&p),
+                eye: six(&y),
+            };
+            jobs.push((codes, cam));
+        }
+        self.render_jobs(py, jobs, batch, watermark)
+    }
+
+    /// One frame from codes: expression (padded with zeros to the FLAME's count), jaw and eyes
+    /// (axis-angle), camera (3x4).
+    #[pyo3(signature = (expression, jaw, eyes, camera, watermark=true))]
+    fn _render_codes<'py>(
+        &mut self,
+        py: Python<'py>,
+        expression: Vec<f32>,
+        jaw: [f32; 3],
+        eyes: [f32; 6],
+        camera: [[f64; 4]; 3],
+        watermark: bool,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let n_exp = self.avatar.flame().config.n_exp;
+        if expression.len() > n_exp {
+            return Err(bad(format!(
+                "expression has {} values, this FLAME has {n_exp}",
+                expression.len()
+            )));
+        }
+        let mut e = expression;
+        e.resize(n_exp, 0.0);
+        let codes = FrameCodes {
+            expression: e,
+            pose: [0.0, 0.0, 0.0, jaw[0], jaw[1], jaw[2]],
+            eye: eyes,
+        };
+        self.render_jobs(py, vec![(codes, camera)], 1, watermark)
+    }
+
+    /// The orbit of `gagavatar orbit`: `frames` views on a figure-eight (degrees).
+    #[pyo3(signature = (yaw=30.0, pitch=10.0, frames=60, batch=4, watermark=true))]
+    fn orbit<'py>(
+        &mut self,
+        py: Python<'py>,
+        yaw: f64,
+        pitch: f64,
+        frames: usize,
+        batch: usize,
+        watermark: bool,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        if frames == 0 || !yaw.is_finite() || !pitch.is_finite() {
+            return Err(bad("orbit needs frames >= 1 and finite angles"));
+        }
+        let base = self.avatar.source_camera().map_err(to_py)?;
+        let codes = self
+            .avatar
+            .codes(self.avatar.source(), "the source record")
+            .map_err(to_py)?;
+        let jobs = orbit_cameras(&base, yaw, pitch, frames)
+            .into_iter()
+            .map(|c| (codes.clone(), c))
+            .collect();
+        self.render_jobs(py, jobs, batch, watermark)
+    }
+
+    /// Writes the avatar as a 3DGS `.ply`, the expression Gaussians placed for `record_json`
+    /// (default: the source's own).
+    #[pyo3(signature = (path, record_json=None))]
+    fn _export_ply(
+        &self,
+        py: Python<'_>,
+        path: PathBuf,
+        record_json: Option<&str>,
+    ) -> PyResult<()> {
+        let record = match record_json {
+            Some(t) => record_from_json(t, "the expression record")?,
+            None => self.avatar.source().clone(),
+        };
+        let codes = self
+            .avatar
+            .codes(&record, "the expression record")
+            .map_err(to_py)?;
+        let scene = py
+            .detach(|| lined(self.avatar.scene(&codes)))
+            .map_err(bad)?;
+        py.detach(|| scene.save_ply(&path)).map_err(to_py)
+    }
+}
+
+impl Avatar {
+    fn render_jobs<'py>(
+        &mut self,
+        py: Python<'py>,
+        jobs: Vec<(FrameCodes, Camera)>,
+        batch: usize,
+        mark: bool,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        if jobs.is_empty() {
+            return Err(bad("nothing to render (no frames)"));
+        }
+        let size = self.avatar.image_size();
+        let drive = &mut self.drive;
+        let library = &mut self.library;
+        let mut frames = py
+            .detach(|| -> Result<Vec<Vec<u8>>, String> {
+                let mut out = Vec::with_capacity(jobs.len());
+                for chunk in jobs.chunks(batch.max(1)) {
+                    let t0 = std::time::Instant::now();
+                    out.extend(lined(drive.get().render_batch(chunk))?);
+                    *library += t0.elapsed();
+                }
+                Ok(out)
+            })
+            .map_err(bad)?;
+        if mark {
+            watermark(&mut frames, size);
+        }
+        frames_array(py, frames, size)
+    }
+}
+
+/// A driving sequence (tracked folder, `.pkl`, JSON sequence): frame names, records (JSON) and
+/// the frame rate.
+#[pyfunction]
+fn _read_driver(py: Python<'_>, path: PathBuf) -> PyResult<(Vec<String>, Vec<String>, f64)> {
+    let seq = py
+        .detach(|| gagavatar_data::DriverSequence::open(&path))
+        .map_err(to_py)?;
+    let names = seq.frames.iter().map(|f| f.name.clone()).collect();
+    let records = seq
+        .frames
+        .iter()
+        .map(|f| record_to_json(&f.record))
+        .collect();
+    Ok((names, records, seq.fps))
+}
+
+/// One record: a tracked-frame JSON, or frame `key` of a release `optim.pkl`.
+#[pyfunction]
+#[pyo3(signature = (path, key=None))]
+fn _read_record(path: PathBuf, key: Option<&str>) -> PyResult<String> {
+    let r = gagavatar_data::read_source_record(&path, key).map_err(to_py)?;
+    Ok(record_to_json(&r))
+}
+
+/// Writes `[N, H, W, 3]` uint8 frames to a video (.mp4 H.264, .gif, else a folder of PNGs),
+/// atomically; `watermark` draws the visible label (the frames of `render` already carry it).
+#[pyfunction]
+#[pyo3(signature = (path, frames, fps=25.0, watermark=false))]
+fn write_video(
+    py: Python<'_>,
+    path: PathBuf,
+    frames: PyReadonlyArray4<'_, u8>,
+    fps: f64,
+    watermark: bool,
+) -> PyResult<()> {
+    let shape = frames.shape().to_vec();
+    if shape[3] != 3 || shape[0] == 0 {
+        return Err(bad(format!(
+            "frames must be [N >= 1, H, W, 3] uint8 RGB, got {shape:?}"
+        )));
+    }
+    let (h, w) = (shape[1], shape[2]);
+    let data: Vec<u8> = frames.as_array().iter().copied().collect();
+    py.detach(|| -> Result<(), gagavatar_video::VideoError> {
+        let opts = gagavatar_video::VideoOptions { fps, watermark };
+        let mut writer = gagavatar_video::VideoWriter::create(&path, w, h, opts)?;
+        for f in data.chunks_exact(w * h * 3) {
+            writer.push_rgb(f)?;
+        }
+        writer.finish()
+    })
+    .map_err(to_py)
+}
+
+/// The shipped demo model's files (`weights.safetensors`, `source.png`, `source.json`), built
+/// into the module so `Engine.demo()` needs no checkout.
+#[pyfunction]
+fn _demo_file(name: &str) -> PyResult<std::borrow::Cow<'static, [u8]>> {
+    let bytes: &'static [u8] = match name {
+        "weights.safetensors" => include_bytes!("../../assets/demo/weights.safetensors"),
+        "source.png" => include_bytes!("../../assets/demo/source.png"),
+        "source.json" => include_bytes!("../../assets/demo/source.json"),
+        "driver.json" => include_bytes!("../../assets/demo/driver.json"),
+        other => return Err(bad(format!("no demo file `{other}`"))),
+    };
+    Ok(std::borrow::Cow::Borrowed(bytes))
+}
+
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("Error", m.py().get_type::<Error>())?;
+    m.add_class::<Engine>()?;
+    m.add_class::<Avatar>()?;
+    m.add_function(wrap_pyfunction!(_read_driver, m)?)?;
+    m.add_function(wrap_pyfunction!(_read_record, m)?)?;
+    m.add_function(wrap_pyfunction!(write_video, m)?)?;
+    m.add_function(wrap_pyfunction!(_demo_file, m)?)?;
+    Ok(())
+}
