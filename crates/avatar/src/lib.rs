@@ -24,6 +24,7 @@ pub mod convert;
 pub mod drive;
 pub mod engine;
 mod error;
+pub mod many;
 pub mod orbit;
 
 pub use avatar::Avatar;
@@ -35,3 +36,4 @@ pub use engine::{
 };
 pub use error::{AvatarError, Result};
 pub use gagavatar_gpu::flame::FrameCodes;
+pub use many::render_many;

@@ -174,6 +174,48 @@ fn the_gpu_drive_renders_what_the_cpu_drive_renders() {
 }
 
 #[test]
+fn several_avatars_render_in_one_batch_as_each_alone() {
+    let e = engine();
+    let (img, rec) = source();
+    let a = e.avatar(&img, &rec).unwrap();
+    // Another person: the photo mirrored and another FLAME shape.
+    let mirrored = image::imageops::flip_horizontal(&img);
+    let mut other = rec.clone();
+    for v in other.shapecode.iter_mut().take(20) {
+        *v = -*v + 0.5;
+    }
+    let b = e.avatar(&mirrored, &other).unwrap();
+    let (ca, cb) = (a.codes(&rec, "a").unwrap(), b.codes(&other, "b").unwrap());
+    let (cam_a, cam_b) = (a.source_camera().unwrap(), b.source_camera().unwrap());
+    let jobs = vec![
+        (0, ca.clone(), cam_a),
+        (1, cb.clone(), cam_b),
+        (0, codes(&ca, 1.5, 0.2), cam_a),
+        (1, codes(&cb, 0.0, 0.1), cam_a),
+    ];
+    let together = gagavatar_avatar::render_many(&[&a, &b], &jobs).unwrap();
+    assert_eq!(together.len(), 4);
+    for (j, (index, c, cam)) in jobs.iter().enumerate() {
+        let alone = [&a, &b][*index].cpu_drive().render(c, cam).unwrap();
+        let d = max_level_diff(&alone, &together[j]);
+        assert!(
+            d <= BATCH_LEVELS,
+            "frame {j}: batched vs alone differ by {d} levels"
+        );
+    }
+    assert_ne!(together[0], together[1], "the two avatars rendered alike");
+    // Bad batches: an index past the avatars, an avatar of another engine, nothing to do.
+    let err = gagavatar_avatar::render_many(&[&a], &jobs).unwrap_err();
+    assert!(err.to_string().contains("avatar 1 of 1"), "{err}");
+    let e2 = engine();
+    let c = e2.avatar(&img, &rec).unwrap();
+    let err = gagavatar_avatar::render_many(&[&a, &c], &jobs).unwrap_err();
+    assert!(err.to_string().contains("another engine"), "{err}");
+    assert!(gagavatar_avatar::render_many(&[&a], &[]).is_err());
+    assert!(gagavatar_avatar::render_many(&[], &jobs).is_err());
+}
+
+#[test]
 fn bad_inputs_are_typed_errors() {
     let e = engine();
     let (img, rec) = source();
