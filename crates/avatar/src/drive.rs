@@ -32,8 +32,8 @@ pub struct DriveTimes {
 }
 
 /// Renders frames of one avatar. Frames are RGB u8, row-major, `image_size()` square
-/// (`3 * size * size` bytes); the same codes and camera always give the same frame with fixed
-/// noise, whatever the batching.
+/// (`3 * size * size` bytes). With fixed noise the same codes and camera give the same frame
+/// again; another batch size may differ by one 8-bit level (the batched sums round otherwise).
 pub trait Drive {
     /// The side of the square frames.
     fn image_size(&self) -> usize;
@@ -52,7 +52,8 @@ pub trait Drive {
     fn times(&self) -> DriveTimes;
 }
 
-fn check_camera(camera: &Camera, i: usize) -> Result<()> {
+/// Refuses a camera with a non-finite value, naming frame `i`.
+pub(crate) fn check_camera(camera: &Camera, i: usize) -> Result<()> {
     if camera.iter().flatten().all(|v| v.is_finite()) {
         Ok(())
     } else {

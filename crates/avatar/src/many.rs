@@ -11,7 +11,7 @@ use gagavatar_net::model::{render_fine, splat_coarse, Avatar as Gaussians};
 
 use crate::avatar::Avatar;
 use crate::convert::{to_rgb8, transforms_tensor};
-use crate::drive::Camera;
+use crate::drive::{check_camera, Camera};
 use crate::error::{input_err, Result};
 
 /// Renders `jobs` (`(avatar index, codes, camera)`) on the CPU in one batch; frames in job
@@ -47,12 +47,7 @@ pub fn render_many(
                 format!("avatar {index} of {}", avatars.len()),
             )
         })?;
-        if !cam.iter().flatten().all(|v| v.is_finite()) {
-            return Err(input_err(
-                format!("camera of frame {j}"),
-                "a value is not finite",
-            ));
-        }
+        check_camera(cam, j)?;
         verts.push(avatar.vertices(codes)?);
         cams.push(*cam);
         let g = &avatar.gaussians;
