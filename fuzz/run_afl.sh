@@ -13,7 +13,7 @@ execs="${1:-1000000}"
 shift || true
 targets=("$@")
 if [ ${#targets[@]} -eq 0 ]; then
-    targets=(pickle numpy torch_zip safetensors lmdb mp4 ply records_json driving_json toml_config image)
+    targets=(pickle numpy torch_zip safetensors lmdb mp4 ply records_json driving_json toml_config image onnx)
 fi
 bin=target/release/gagavatar-fuzz-afl
 mkdir -p out

@@ -30,6 +30,7 @@ pub const TARGETS: &[(&str, Harness)] = &[
     ("driving_json", driving_json),
     ("toml_config", toml_config),
     ("image", image),
+    ("onnx", onnx),
 ];
 
 /// The harness called `name`.
@@ -141,6 +142,21 @@ pub fn image(data: &[u8]) {
         fit_within: Some(2048),
     };
     let _ = gagavatar_formats::image::decode_image(data, "fuzz", &opts);
+}
+
+/// An ONNX model (a user's ArcFace for `eval --arcface`): the hand-written protobuf reader, then
+/// every node and initializer it kept.
+pub fn onnx(data: &[u8]) {
+    if let Ok(g) = gagavatar_formats::onnx::parse_model(data) {
+        let mut n = g.inputs.len() + g.outputs.len();
+        for node in &g.nodes {
+            n += node.inputs.len() + node.outputs.len() + node.attributes.len();
+        }
+        for t in g.initializers.values() {
+            n += t.dims.len();
+        }
+        std::hint::black_box(n);
+    }
 }
 
 /// Writes `data` to a scratch file named `name` (per process and thread) for the loaders that

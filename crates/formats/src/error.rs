@@ -36,6 +36,9 @@ pub enum FormatError {
     Lmdb { path: PathBuf, reason: String },
     #[error("{label}: not a readable PLY file: {reason}")]
     Ply { label: String, reason: String },
+    /// An ONNX model file that cannot be decoded, or that uses what the reader does not keep.
+    #[error("{label}: {reason}")]
+    Onnx { label: String, reason: String },
     /// Values that cannot be written (duplicate or empty keys, sizes beyond the format, ...).
     #[error("{}: cannot write: {reason}", path.display())]
     Write { path: PathBuf, reason: String },
@@ -55,6 +58,7 @@ impl FormatError {
             FormatError::Io { what, err, .. } => format!("{what}: {err}"),
             FormatError::Image { reason, .. }
             | FormatError::Pickle { reason, .. }
+            | FormatError::Onnx { reason, .. }
             | FormatError::Write { reason, .. } => reason.clone(),
             FormatError::TorchZip { reason, .. } => {
                 format!("not a readable torch zip checkpoint: {reason}")

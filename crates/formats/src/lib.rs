@@ -10,6 +10,8 @@
 //! - [`tensor`]: the generic tensor values those readers return.
 //! - [`lmdb`]: a bounds-checked LMDB reader and writer (the release's `img_lmdb/`).
 //! - [`ply`]: PLY point clouds (3DGS scenes).
+//! - [`onnx`]: ONNX model files (a user's ArcFace for `eval --arcface`), the protobuf decoded
+//!   by hand into nodes, attributes and initializers.
 //! - [`sniff`]: what a file is, from its first bytes, for error messages.
 //! - [`image`]: photos decoded by their content, not their name, with EXIF orientation applied,
 //!   a size cap, and downscaling of huge photos right after decoding.
@@ -21,6 +23,7 @@ pub mod error;
 pub mod image;
 pub mod lmdb;
 pub mod numpy;
+pub mod onnx;
 pub mod pickle;
 pub mod ply;
 pub mod safetensors;

@@ -1,6 +1,6 @@
 //! CSIM with a user's ArcFace model (the paper's identity network) from an ONNX file, e.g.
 //! InsightFace's IResNet-50 / 100 exports. No weights ship with the project: users bring the
-//! file. The graph is read by [`crate::onnx`] and run here node by node on candle, for the
+//! file. The graph is read by `gagavatar_formats::onnx` and run here node by node on candle, for the
 //! operators such feed-forward face-recognition networks use: Conv (groups, dilations,
 //! asymmetric pads), BatchNormalization, PRelu, Relu, Add, Sub, Mul, Div, Flatten, Gemm,
 //! MatMul, Reshape, GlobalAveragePool, Identity, Dropout (inference) and Constant (folded at
@@ -21,7 +21,7 @@ use image::RgbImage;
 
 use crate::error::{input_err, Result};
 use crate::geometry::similarity_transform;
-use crate::onnx::{parse_model, Attribute, Data, Node, OnnxGraph};
+use gagavatar_formats::onnx::{parse_model, Attribute, Data, Node, OnnxGraph};
 
 /// ArcFace's input side.
 pub const ARCFACE_SIZE: u32 = 112;

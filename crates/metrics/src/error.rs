@@ -13,6 +13,9 @@ pub enum MetricsError {
     /// An input the metric cannot be computed on.
     #[error("invalid input `{name}`: {reason}")]
     Input { name: String, reason: String },
+    /// A model file that the format readers refuse (an ONNX model that cannot be decoded).
+    #[error(transparent)]
+    File(#[from] gagavatar_formats::FormatError),
 }
 
 pub type Result<T> = std::result::Result<T, MetricsError>;

@@ -32,7 +32,6 @@ pub mod error;
 pub mod expression_pose;
 pub mod geometry;
 pub mod identity;
-pub mod onnx;
 pub mod protocol;
 pub mod realign;
 pub mod report;

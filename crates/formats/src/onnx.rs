@@ -12,7 +12,7 @@
 
 use std::collections::BTreeMap;
 
-use crate::error::{input_err, Result};
+use crate::error::{FormatError, Result};
 
 /// Files larger than this are refused (an IResNet-100 is about 260 MB).
 pub const MAX_MODEL_BYTES: usize = 1 << 30;
@@ -103,8 +103,11 @@ enum Value<'a> {
     Fixed32(u32),
 }
 
-fn bad(reason: impl Into<String>) -> crate::error::MetricsError {
-    input_err("ONNX model", reason)
+fn bad(reason: impl Into<String>) -> FormatError {
+    FormatError::Onnx {
+        label: "ONNX model".into(),
+        reason: reason.into(),
+    }
 }
 
 impl<'a> Reader<'a> {
