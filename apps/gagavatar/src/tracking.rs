@@ -35,8 +35,8 @@ use image::RgbImage;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::cmd_model::SYNTHETIC_FLAME;
 use crate::progress::{progress, spinner};
+use gagavatar_avatar::FlameSource;
 
 /// Bump when the tracker's results change for the same input (a new fit, crop or matte, or a new
 /// field in its output: 5 writes the video's frame rate into track.json), so cached tracks made by
@@ -76,11 +76,11 @@ pub fn input_kind(path: &Path) -> Result<InputKind> {
 
 /// The FLAME asset at `path`, or the built-in synthetic one for `synthetic`.
 pub fn load_flame_asset(path: &Path) -> Result<FlameAsset> {
-    if path.as_os_str() == SYNTHETIC_FLAME && !path.exists() {
-        return Ok(gagavatar_flame::synthesize(0));
+    match FlameSource::from_arg(path) {
+        FlameSource::File(p) => FlameAsset::load(&p, &LoadOptions::default())
+            .with_context(|| format!("loading FLAME {}", p.display())),
+        _ => Ok(gagavatar_flame::synthesize(0)),
     }
-    FlameAsset::load(path, &LoadOptions::default())
-        .with_context(|| format!("loading FLAME {}", path.display()))
 }
 
 /// The name the tracked folder's keys use: the input's file stem.
@@ -489,11 +489,12 @@ pub fn cache_key(input: &Path, flame: &Path, opts: &TrackOptions) -> Result<Stri
         )
         .as_bytes(),
     );
-    if flame.as_os_str() == SYNTHETIC_FLAME && !flame.exists() {
-        h.update(b"flame:synthetic(0)\0");
-    } else {
-        h.update(b"flame:file\0");
-        hash_file(&mut h, flame)?;
+    match FlameSource::from_arg(flame) {
+        FlameSource::File(p) => {
+            h.update(b"flame:file\0");
+            hash_file(&mut h, &p)?;
+        }
+        _ => h.update(b"flame:synthetic(0)\0"),
     }
     h.update(b"input\0");
     hash_input(&mut h, input)?;
