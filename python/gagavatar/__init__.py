@@ -160,11 +160,12 @@ class Avatar:
 
     def __init__(self, native):
         self._a = native
+        self._source = _record_dict(native._source_json())
 
     @property
     def source(self) -> Record:
-        """The record the avatar was made from."""
-        return _record_dict(self._a._source_json())
+        """The record the avatar was made from (a copy)."""
+        return {k: v.copy() for k, v in self._source.items()}
 
     @property
     def image_size(self) -> int:
@@ -227,12 +228,15 @@ class Avatar:
     ) -> np.ndarray:
         """One frame `[S, S, 3]` from codes: expression (zero-padded), jaw and eyes (axis-angle),
         camera (3x4; default: the source's)."""
-        cam = self.source["transform_matrix"] if camera is None else camera
-        return self._a._render_codes(
-            [float(x) for x in np.asarray(expression, dtype=np.float64).reshape(-1)],
-            [float(x) for x in np.asarray(jaw, dtype=np.float64).reshape(3)],
-            [float(x) for x in np.asarray(eyes, dtype=np.float64).reshape(6)],
-            np.asarray(cam, dtype=np.float64).reshape(3, 4).tolist(),
+        cam = self._source["transform_matrix"] if camera is None else camera
+        pose = np.zeros((1, 6), dtype=np.float32)
+        pose[0, 3:] = np.asarray(jaw, dtype=np.float32).reshape(3)
+        return self._a._render_arrays(
+            np.asarray(expression, dtype=np.float32).reshape(1, -1),
+            pose,
+            np.asarray(eyes, dtype=np.float32).reshape(1, 6),
+            np.asarray(cam, dtype=np.float64).reshape(1, 3, 4),
+            1,
             watermark,
         )[0]
 

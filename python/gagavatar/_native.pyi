@@ -1,7 +1,7 @@
 """Type stub of the compiled module `gagavatar._native` (PyO3); use the `gagavatar` package."""
 
 from os import PathLike
-from typing import List, Optional, Sequence, Tuple, Union
+from typing import List, Optional, Tuple, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -46,14 +46,6 @@ class Avatar:
         eyecode: npt.NDArray[np.float32],
         cameras: npt.NDArray[np.float64],
         batch: int = 4,
-        watermark: bool = True,
-    ) -> npt.NDArray[np.uint8]: ...
-    def _render_codes(
-        self,
-        expression: Sequence[float],
-        jaw: Sequence[float],
-        eyes: Sequence[float],
-        camera: Sequence[Sequence[float]],
         watermark: bool = True,
     ) -> npt.NDArray[np.uint8]: ...
     def orbit(

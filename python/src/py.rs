@@ -369,7 +369,7 @@ impl Avatar {
             let mut expression: Vec<f32> = e.row(i).to_vec();
             if expression.len() > n_exp {
                 return Err(bad(format!(
-                    "frame {i}: expcode has {} values, this FLAME has {n_exp}",
+                    "frame {i}: the expression (expcode) has {} values, this FLAME has {n_exp}",
                     expression.len()
                 )));
             }
@@ -385,35 +385,6 @@ impl Avatar {
             jobs.push((codes, cam));
         }
         self.render_jobs(py, jobs, batch, watermark)
-    }
-
-    /// One frame from codes: expression (padded with zeros to the FLAME's count), jaw and eyes
-    /// (axis-angle), camera (3x4).
-    #[pyo3(signature = (expression, jaw, eyes, camera, watermark=true))]
-    fn _render_codes<'py>(
-        &mut self,
-        py: Python<'py>,
-        expression: Vec<f32>,
-        jaw: [f32; 3],
-        eyes: [f32; 6],
-        camera: [[f64; 4]; 3],
-        watermark: bool,
-    ) -> PyResult<Bound<'py, PyAny>> {
-        let n_exp = self.avatar.flame().config.n_exp;
-        if expression.len() > n_exp {
-            return Err(bad(format!(
-                "expression has {} values, this FLAME has {n_exp}",
-                expression.len()
-            )));
-        }
-        let mut e = expression;
-        e.resize(n_exp, 0.0);
-        let codes = FrameCodes {
-            expression: e,
-            pose: [0.0, 0.0, 0.0, jaw[0], jaw[1], jaw[2]],
-            eye: eyes,
-        };
-        self.render_jobs(py, vec![(codes, camera)], 1, watermark)
     }
 
     /// The orbit of `gagavatar orbit`: `frames` views on a figure-eight (degrees).
