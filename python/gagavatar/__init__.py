@@ -2,16 +2,19 @@
 
     import gagavatar as ga
     eng = ga.Engine.demo()                      # or ga.Engine("GAGAvatar.pt", flame="FLAME_with_eye.pt")
-    src = ga.read_record("me.json")             # a dict of NumPy arrays, the release's field names
-    av = eng.avatar("me.png", src)              # reconstruct once (a path or an [H, W, 3] uint8 array)
-    frames = av.render(ga.read_driver("clip_tracked").records)   # uint8 [N, S, S, 3]
-    for f in av.frames("clip_tracked"):         # the same, one frame at a time, for long clips
+    src = eng.track("me.jpg")                   # record + 512 crop (or an [H, W, 3] uint8 array)
+    drv = eng.track("clip.mp4", progress=print) # records, frame names and rate (cached by content)
+    av = eng.avatar(src)                        # reconstruct once
+    frames = av.render(drv)                     # uint8 [N, S, S, 3]
+    for f in av.frames(drv):                    # the same, one frame at a time, for long clips
         ...
+    both = ga.render_many([(av, drv.records[0]), (av2, drv.records[0])])   # one batched pass
     img = av.render_codes(expression=e, jaw=j, eyes=y, camera=T)
     av.export_ply("avatar.ply")
     ga.write_video("out.mp4", frames, fps=25)
 
-Records come from `gagavatar track` (a tracked folder), a release `optim.pkl` or a JSON record.
+Records come from `Engine.track`, `gagavatar track` (a tracked folder), a release `optim.pkl` or
+a JSON record (`read_record`, `read_driver`), as dicts of NumPy arrays in the release's names.
 Frames carry the visible "AI-generated" label unless `watermark=False`. Every failure raises
 `gagavatar.Error` with the CLI's one-line message. Computation releases the GIL.
 """
@@ -35,7 +38,9 @@ __all__ = [
     "Engine",
     "Avatar",
     "Driver",
+    "Tracked",
     "Error",
+    "render_many",
     "read_record",
     "read_driver",
     "write_video",
@@ -83,6 +88,25 @@ class Driver:
 
     def __len__(self) -> int:
         return len(self.records)
+
+
+@dataclass
+class Tracked(Driver):
+    """What `Engine.track` made: the records in frame order (a video's smoothed ones), their
+    frame names and rate, and for a photo its 512 crop (matted, as the folder stores it). `dir`
+    is the tracked folder (`None` for an array tracked in memory); `cached` says it was found in
+    the tracking cache. A tracked photo is a source for `Engine.avatar`, a tracked video a driver
+    for `Avatar.render`."""
+
+    kind: str = "video"
+    dir: Optional[str] = None
+    crop: Optional[np.ndarray] = None
+    cached: bool = False
+
+    @property
+    def record(self) -> Record:
+        """The first (a photo's only) record."""
+        return self.records[0]
 
 
 def read_driver(path: PathLike) -> Driver:
@@ -143,9 +167,41 @@ class Engine:
     def device(self) -> str:
         return self._e.device
 
-    def avatar(self, image, record) -> "Avatar":
+    def track(self, source, output: Optional[PathLike] = None, progress=None) -> Tracked:
+        """Tracks a photo, a video or a folder of images (a path), or a photo given as an
+        `[H, W, 3]` uint8 array (in memory, nothing written), with this engine's FLAME.
+
+        A path goes into `output` (a folder in the release's layout) or, by default, into the
+        tracking cache, where a later call with the same bytes finds it. `progress(stage, done,
+        total)` is called as it works; an exception it raises, or Ctrl-C, stops the call and
+        nothing is left half-written. Raises `Error` ("no face found in ...") for a photo
+        without a face."""
+        if isinstance(source, (str, os.PathLike)):
+            kind, d, names, records, crop, fps, cached = self._e._track_file(
+                os.fspath(source), None if output is None else os.fspath(output), progress
+            )
+            return Tracked(
+                names, [_record_dict(r) for r in records], fps, kind, d, crop, cached
+            )
+        if output is not None:
+            raise Error("output is for a path; an array is tracked in memory")
+        arr = np.ascontiguousarray(source)
+        if arr.dtype != np.uint8 or arr.ndim != 3:
+            raise Error(f"the image must be [H, W, 3] uint8 RGB, got {arr.dtype} {arr.shape}")
+        record, crop = self._e._track_array(arr, "the image")
+        return Tracked(["image_0"], [_record_dict(record)], 25.0, "photo", None, crop, False)
+
+    def avatar(self, image, record=None) -> "Avatar":
         """Reconstructs an avatar from the source crop (a path, or an `[H, W, 3]` uint8 array)
-        and its record (a dict or a path)."""
+        and its record (a dict or a path), or from a tracked photo (`Engine.track`) alone."""
+        if isinstance(image, Tracked):
+            if record is not None:
+                raise Error("a tracked photo carries its own record")
+            if image.kind != "photo" or image.crop is None:
+                raise Error("a tracked video is a driver, not a source: track a photo")
+            image, record = image.crop, image.record
+        if record is None:
+            raise Error("give the source's record, or a tracked photo (Engine.track)")
         rec = _record_json(record)
         if isinstance(image, (str, os.PathLike)):
             return Avatar(self._e._avatar_from_file(os.fspath(image), rec))
@@ -195,28 +251,8 @@ class Avatar:
     def _render(self, records, batch, watermark):
         if len(records) == 0:
             raise Error("nothing to render (no frames)")
-        for i, r in enumerate(records):
-            if not isinstance(r, dict):
-                raise Error(f"driver record {i} is a {type(r).__name__}, not a dict")
-            if r.get("transform_matrix") is None:
-                raise Error(f"driver record {i}: no transform_matrix (the camera)")
-
-        def rows(key, n=None):
-            vals = [np.asarray(r.get(key, ()), dtype=np.float32).reshape(-1) for r in records]
-            width = n if n is not None else max(len(v) for v in vals)
-            out = np.zeros((len(vals), width), dtype=np.float32)
-            for i, v in enumerate(vals):
-                if n is not None and len(v) != n:
-                    raise Error(f"driver record {i}: {key} has {len(v)} values, expected {n}")
-                out[i, : len(v)] = v
-            return out
-
-        cams = np.stack(
-            [np.asarray(r["transform_matrix"], dtype=np.float64).reshape(3, 4) for r in records]
-        )
-        return self._a._render_arrays(
-            rows("expcode"), rows("posecode", 6), rows("eyecode", 6), cams, batch, watermark
-        )
+        e, p, y, c = _code_arrays(records)
+        return self._a._render_arrays(e, p, y, c, batch, watermark)
 
     def render_codes(
         self,
@@ -250,6 +286,56 @@ class Avatar:
         default: the source's own)."""
         rec = None if expression is None else _record_json(expression)
         self._a._export_ply(os.fspath(path), rec)
+
+
+def render_many(jobs, watermark: bool = True) -> np.ndarray:
+    """Frames of several avatars (of one engine) in one batched pass, as a server gathers
+    requests: `jobs` is a list of `(avatar, record)`; returns `[N, S, S, 3]` uint8, frame `i`
+    as `jobs[i][0].render([jobs[i][1]])` (up to the batched sums' rounding)."""
+    jobs = list(jobs)
+    if not jobs:
+        raise Error("render_many needs at least one (avatar, record)")
+    natives, index, records = [], [], []
+    for i, job in enumerate(jobs):
+        try:
+            av, rec = job
+        except (TypeError, ValueError):
+            raise Error(f"job {i} is not an (avatar, record) pair") from None
+        if not isinstance(av, Avatar):
+            raise Error(f"job {i}: {type(av).__name__} is not an Avatar")
+        k = next((j for j, n in enumerate(natives) if n is av._a), None)
+        if k is None:
+            natives.append(av._a)
+            k = len(natives) - 1
+        index.append(k)
+        records.append(rec)
+    e, p, y, c = _code_arrays(records)
+    return _native._render_many(natives, index, e, p, y, c, watermark)
+
+
+def _code_arrays(records):
+    """Records as the native code arrays: expcode `[N, E]`, posecode and eyecode `[N, 6]`
+    (float32), cameras `[N, 3, 4]` (float64)."""
+    for i, r in enumerate(records):
+        if not isinstance(r, dict):
+            raise Error(f"driver record {i} is a {type(r).__name__}, not a dict")
+        if r.get("transform_matrix") is None:
+            raise Error(f"driver record {i}: no transform_matrix (the camera)")
+
+    def rows(key, n=None):
+        vals = [np.asarray(r.get(key, ()), dtype=np.float32).reshape(-1) for r in records]
+        width = n if n is not None else max(len(v) for v in vals)
+        out = np.zeros((len(vals), width), dtype=np.float32)
+        for i, v in enumerate(vals):
+            if n is not None and len(v) != n:
+                raise Error(f"driver record {i}: {key} has {len(v)} values, expected {n}")
+            out[i, : len(v)] = v
+        return out
+
+    cams = np.stack(
+        [np.asarray(r["transform_matrix"], dtype=np.float64).reshape(3, 4) for r in records]
+    )
+    return rows("expcode"), rows("posecode", 6), rows("eyecode", 6), cams
 
 
 def _driver_records(driver) -> List:

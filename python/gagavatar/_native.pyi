@@ -1,7 +1,7 @@
 """Type stub of the compiled module `gagavatar._native` (PyO3); use the `gagavatar` package."""
 
 from os import PathLike
-from typing import List, Optional, Tuple, Union
+from typing import Any, Callable, List, Optional, Tuple, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -30,6 +30,15 @@ class Engine:
     def device(self) -> str: ...
     def _avatar_from_array(self, image: npt.NDArray[np.uint8], record_json: str) -> Avatar: ...
     def _avatar_from_file(self, path: _Path, record_json: str) -> Avatar: ...
+    def _track_file(
+        self,
+        path: _Path,
+        output: Optional[_Path] = None,
+        progress: Optional[Callable[[str, int, Optional[int]], Any]] = None,
+    ) -> Tuple[str, str, List[str], List[str], Optional[npt.NDArray[np.uint8]], float, bool]: ...
+    def _track_array(
+        self, image: npt.NDArray[np.uint8], label: str
+    ) -> Tuple[str, npt.NDArray[np.uint8]]: ...
 
 class Avatar:
     @property
@@ -61,6 +70,15 @@ class Avatar:
 def _read_driver(path: _Path) -> Tuple[List[str], List[str], float]: ...
 def _read_record(path: _Path, key: Optional[str] = None) -> str: ...
 def _demo_file(name: str) -> bytes: ...
+def _render_many(
+    avatars: List[Avatar],
+    index: List[int],
+    expcode: npt.NDArray[np.float32],
+    posecode: npt.NDArray[np.float32],
+    eyecode: npt.NDArray[np.float32],
+    cameras: npt.NDArray[np.float64],
+    watermark: bool = True,
+) -> npt.NDArray[np.uint8]: ...
 def write_video(
     path: _Path, frames: npt.NDArray[np.uint8], fps: float = 25.0, watermark: bool = False
 ) -> None: ...

@@ -16,6 +16,7 @@ use pyo3::prelude::*;
 use gagavatar_avatar::orbit::orbit_cameras;
 use gagavatar_avatar::{
     Camera, CpuDrive, Drive, Engine as CoreEngine, EngineConfig, FlameSource, FrameCodes, GpuDrive,
+    Monitor, TrackTo,
 };
 use gagavatar_flame::TrackedFrame;
 use gagavatar_gpu::{AdapterPolicy, Gpu};
@@ -184,17 +185,7 @@ impl Engine {
         image: PyReadonlyArray3<'_, u8>,
         record_json: &str,
     ) -> PyResult<Avatar> {
-        let shape = image.shape();
-        if shape[2] != 3 {
-            return Err(bad(format!(
-                "the image must be [H, W, 3] uint8 RGB, got {:?}",
-                shape
-            )));
-        }
-        let (h, w) = (shape[0] as u32, shape[1] as u32);
-        let data: Vec<u8> = image.as_array().iter().copied().collect();
-        let img = image::RgbImage::from_raw(w, h, data)
-            .ok_or_else(|| bad("the image data does not fill [H, W, 3]"))?;
+        let img = image_from_array(&image)?;
         let record = record_from_json(record_json, "the source record")?;
         self.make_avatar(py, img, record)
     }
@@ -218,7 +209,153 @@ impl Engine {
         let record = record_from_json(record_json, "the source record")?;
         self.make_avatar(py, img, record)
     }
+
+    /// Tracks a photo, a video or a folder of images into `output` (a folder), or into the
+    /// tracking cache when `output` is `None` (a previous run's folder for the same bytes is
+    /// reused). `progress(stage, done, total)` is called as it works.
+    #[pyo3(signature = (path, output=None, progress=None))]
+    fn _track_file<'py>(
+        &self,
+        py: Python<'py>,
+        path: PathBuf,
+        output: Option<PathBuf>,
+        progress: Option<Py<PyAny>>,
+    ) -> PyResult<TrackedTuple<'py>> {
+        let to = output.map_or(TrackTo::Cache, TrackTo::Folder);
+        let monitor = PyMonitor::new(progress);
+        let engine = self.inner.clone();
+        let r = py.detach(|| engine.track(&path, &to, &monitor).map_err(Box::new));
+        let t = monitor.result(r)?;
+        let kind = match t.kind {
+            gagavatar_avatar::InputKind::Photo => "photo",
+            gagavatar_avatar::InputKind::Video => "video",
+        };
+        let records = t.records.iter().map(record_to_json).collect();
+        let crop = t.crop.map(|c| image_array(py, c)).transpose()?;
+        Ok((
+            kind,
+            t.dir.display().to_string(),
+            t.names,
+            records,
+            crop,
+            t.fps,
+            t.cached,
+        ))
+    }
+
+    /// Tracks a photo given as an `[H, W, 3]` uint8 array, in memory: its record (JSON) and 512
+    /// crop. `label` names it in "no face found in LABEL".
+    fn _track_array<'py>(
+        &self,
+        py: Python<'py>,
+        image: PyReadonlyArray3<'_, u8>,
+        label: &str,
+    ) -> PyResult<(String, Bound<'py, PyAny>)> {
+        let img = image_from_array(&image)?;
+        let engine = self.inner.clone();
+        let t = py
+            .detach(|| lined(engine.track_photo(&img, label)))
+            .map_err(bad)?;
+        let record = record_to_json(&gagavatar_avatar::cache::as_stored(t.record()));
+        Ok((record, image_array(py, t.crop)?))
+    }
 }
+
+/// Progress to a Python callable `progress(stage, done, total)` (total `None` when unknown),
+/// and cancellation by Ctrl-C or by an exception the callable raises: the first such error is
+/// kept and raised when the call returns.
+struct PyMonitor {
+    callback: Option<Py<PyAny>>,
+    state: std::sync::Mutex<(String, Option<u64>, u64)>,
+    error: std::sync::Mutex<Option<PyErr>>,
+}
+
+impl PyMonitor {
+    fn new(callback: Option<Py<PyAny>>) -> Self {
+        PyMonitor {
+            callback,
+            state: std::sync::Mutex::new((String::new(), None, 0)),
+            error: std::sync::Mutex::new(None),
+        }
+    }
+    fn fail(&self, e: PyErr) {
+        let mut slot = self.error.lock().unwrap_or_else(|p| p.into_inner());
+        if slot.is_none() {
+            *slot = Some(e);
+        }
+    }
+    fn report(&self) {
+        let Some(cb) = &self.callback else { return };
+        let (name, total, done) = self.state.lock().unwrap_or_else(|p| p.into_inner()).clone();
+        Python::attach(|py| {
+            if let Err(e) = cb.call1(py, (name, done, total)) {
+                self.fail(e);
+            }
+        });
+    }
+    /// The kept error, else the call's own.
+    fn result<T>(&self, r: Result<T, Box<gagavatar_avatar::AvatarError>>) -> PyResult<T> {
+        if let Some(e) = self.error.lock().unwrap_or_else(|p| p.into_inner()).take() {
+            return Err(e);
+        }
+        r.map_err(|e| to_py(*e))
+    }
+}
+
+impl Monitor for PyMonitor {
+    fn stage(&self, name: &str, total: Option<u64>) {
+        *self.state.lock().unwrap_or_else(|p| p.into_inner()) = (name.to_string(), total, 0);
+        self.report();
+    }
+    fn advance(&self, steps: u64) {
+        self.state.lock().unwrap_or_else(|p| p.into_inner()).2 += steps;
+        self.report();
+    }
+    fn cancelled(&self) -> bool {
+        // Signals are delivered on the main thread only; elsewhere this is a no-op.
+        if let Err(e) = Python::attach(|py| py.check_signals()) {
+            self.fail(e);
+        }
+        self.error
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .is_some()
+    }
+}
+
+/// An `[H, W, 3]` uint8 array as an image.
+fn image_from_array(image: &PyReadonlyArray3<'_, u8>) -> PyResult<image::RgbImage> {
+    let shape = image.shape();
+    if shape[2] != 3 {
+        return Err(bad(format!(
+            "the image must be [H, W, 3] uint8 RGB, got {:?}",
+            shape
+        )));
+    }
+    let (h, w) = (shape[0] as u32, shape[1] as u32);
+    let data: Vec<u8> = image.as_array().iter().copied().collect();
+    image::RgbImage::from_raw(w, h, data)
+        .ok_or_else(|| bad("the image data does not fill [H, W, 3]"))
+}
+
+fn image_array<'py>(py: Python<'py>, img: image::RgbImage) -> PyResult<Bound<'py, PyAny>> {
+    let (w, h) = img.dimensions();
+    Ok(PyArray1::from_vec(py, img.into_raw())
+        .reshape([h as usize, w as usize, 3])?
+        .into_any())
+}
+
+/// What `_track_file` returns: kind, folder, frame names, records (JSON), the photo's crop,
+/// frame rate, and whether it came from the cache.
+type TrackedTuple<'py> = (
+    &'static str,
+    String,
+    Vec<String>,
+    Vec<String>,
+    Option<Bound<'py, PyAny>>,
+    f64,
+    bool,
+);
 
 impl Engine {
     fn make_avatar(
@@ -325,65 +462,8 @@ impl Avatar {
         batch: usize,
         watermark: bool,
     ) -> PyResult<Bound<'py, PyAny>> {
-        let n = expcode.shape()[0];
-        let shapes_ok =
-            posecode.shape() == [n, 6] && eyecode.shape() == [n, 6] && cameras.shape() == [n, 3, 4];
-        if !shapes_ok {
-            return Err(bad(format!(
-                "codes of {n} frames need posecode [{n}, 6], eyecode [{n}, 6] and cameras \
-                 [{n}, 3, 4]; got {:?}, {:?}, {:?}",
-                posecode.shape(),
-                eyecode.shape(),
-                cameras.shape()
-            )));
-        }
-        let (e, p, y, c) = (
-            expcode.as_array(),
-            posecode.as_array(),
-            eyecode.as_array(),
-            cameras.as_array(),
-        );
         let n_exp = self.avatar.flame().config.n_exp;
-        let mut jobs: Vec<(FrameCodes, Camera)> = Vec::with_capacity(n);
-        for i in 0..n {
-            let mut cam = [[0.0; 4]; 3];
-            for (r, row) in cam.iter_mut().enumerate() {
-                for (k, v) in row.iter_mut().enumerate() {
-                    *v = c[[i, r, k]];
-                }
-            }
-            let f64s = |a: &numpy::ndarray::ArrayView2<'_, f32>| -> Vec<f64> {
-                a.row(i).iter().map(|&v| v as f64).collect()
-            };
-            let record = TrackedFrame {
-                shapecode: Vec::new(),
-                expcode: f64s(&e),
-                posecode: f64s(&p),
-                eyecode: f64s(&y),
-                transform_matrix: Some(cam),
-                bbox: None,
-            };
-            record
-                .validate()
-                .map_err(|err| bad(format!("frame {i}: {}", one_line(&err))))?;
-            let mut expression: Vec<f32> = e.row(i).to_vec();
-            if expression.len() > n_exp {
-                return Err(bad(format!(
-                    "frame {i}: the expression (expcode) has {} values, this FLAME has {n_exp}",
-                    expression.len()
-                )));
-            }
-            expression.resize(n_exp, 0.0);
-            let six = |a: &numpy::ndarray::ArrayView2<'_, f32>| -> [f32; 6] {
-                std::array::from_fn(|k| a[[i, k]])
-            };
-            let codes = FrameCodes {
-                expression,
-                pose: six(&p),
-                eye: six(&y),
-            };
-            jobs.push((codes, cam));
-        }
+        let jobs = jobs_from_arrays(n_exp, &expcode, &posecode, &eyecode, &cameras)?;
         self.render_jobs(py, jobs, batch, watermark)
     }
 
@@ -469,6 +549,119 @@ impl Avatar {
     }
 }
 
+/// Frames' codes given as arrays, one row a frame: expression `[N, E]` and pose and eye codes
+/// `[N, 6]` (float32), cameras `[N, 3, 4]` (float64); each row through a record's checks.
+fn jobs_from_arrays(
+    n_exp: usize,
+    expcode: &PyReadonlyArray2<'_, f32>,
+    posecode: &PyReadonlyArray2<'_, f32>,
+    eyecode: &PyReadonlyArray2<'_, f32>,
+    cameras: &PyReadonlyArray3<'_, f64>,
+) -> PyResult<Vec<(FrameCodes, Camera)>> {
+    let n = expcode.shape()[0];
+    let shapes_ok =
+        posecode.shape() == [n, 6] && eyecode.shape() == [n, 6] && cameras.shape() == [n, 3, 4];
+    if !shapes_ok {
+        return Err(bad(format!(
+            "codes of {n} frames need posecode [{n}, 6], eyecode [{n}, 6] and cameras \
+                 [{n}, 3, 4]; got {:?}, {:?}, {:?}",
+            posecode.shape(),
+            eyecode.shape(),
+            cameras.shape()
+        )));
+    }
+    let (e, p, y, c) = (
+        expcode.as_array(),
+        posecode.as_array(),
+        eyecode.as_array(),
+        cameras.as_array(),
+    );
+    let mut jobs: Vec<(FrameCodes, Camera)> = Vec::with_capacity(n);
+    for i in 0..n {
+        let mut cam = [[0.0; 4]; 3];
+        for (r, row) in cam.iter_mut().enumerate() {
+            for (k, v) in row.iter_mut().enumerate() {
+                *v = c[[i, r, k]];
+            }
+        }
+        let f64s = |a: &numpy::ndarray::ArrayView2<'_, f32>| -> Vec<f64> {
+            a.row(i).iter().map(|&v| v as f64).collect()
+        };
+        let record = TrackedFrame {
+            shapecode: Vec::new(),
+            expcode: f64s(&e),
+            posecode: f64s(&p),
+            eyecode: f64s(&y),
+            transform_matrix: Some(cam),
+            bbox: None,
+        };
+        record
+            .validate()
+            .map_err(|err| bad(format!("frame {i}: {}", one_line(&err))))?;
+        let mut expression: Vec<f32> = e.row(i).to_vec();
+        if expression.len() > n_exp {
+            return Err(bad(format!(
+                "frame {i}: the expression (expcode) has {} values, this FLAME has {n_exp}",
+                expression.len()
+            )));
+        }
+        expression.resize(n_exp, 0.0);
+        let six = |a: &numpy::ndarray::ArrayView2<'_, f32>| -> [f32; 6] {
+            std::array::from_fn(|k| a[[i, k]])
+        };
+        let codes = FrameCodes {
+            expression,
+            pose: six(&p),
+            eye: six(&y),
+        };
+        jobs.push((codes, cam));
+    }
+    Ok(jobs)
+}
+
+/// Frames of several avatars of one engine in one batched pass (`render_many`): frame `i` is
+/// avatar `index[i]` with row `i` of the codes.
+#[pyfunction]
+#[pyo3(signature = (avatars, index, expcode, posecode, eyecode, cameras, watermark=true))]
+#[allow(clippy::too_many_arguments)]
+fn _render_many<'py>(
+    py: Python<'py>,
+    avatars: Vec<PyRef<'py, Avatar>>,
+    index: Vec<usize>,
+    expcode: PyReadonlyArray2<'_, f32>,
+    posecode: PyReadonlyArray2<'_, f32>,
+    eyecode: PyReadonlyArray2<'_, f32>,
+    cameras: PyReadonlyArray3<'_, f64>,
+    watermark: bool,
+) -> PyResult<Bound<'py, PyAny>> {
+    let Some(first) = avatars.first() else {
+        return Err(bad("render_many needs at least one avatar"));
+    };
+    let n_exp = first.avatar.flame().config.n_exp;
+    let size = first.avatar.image_size();
+    let codes = jobs_from_arrays(n_exp, &expcode, &posecode, &eyecode, &cameras)?;
+    if index.len() != codes.len() {
+        return Err(bad(format!(
+            "{} frames of codes but {} avatar indices",
+            codes.len(),
+            index.len()
+        )));
+    }
+    let jobs: Vec<(usize, FrameCodes, Camera)> = index
+        .into_iter()
+        .zip(codes)
+        .map(|(i, (c, cam))| (i, c, cam))
+        .collect();
+    let refs: Vec<&gagavatar_avatar::Avatar> = avatars.iter().map(|a| &a.avatar).collect();
+    let mut frames = py
+        .detach(|| lined(gagavatar_avatar::render_many(&refs, &jobs)))
+        .map_err(bad)?;
+    if watermark {
+        self::watermark(&mut frames, size);
+    }
+    frames_array(py, frames, size)
+}
+
 /// A driving sequence (tracked folder, `.pkl`, JSON sequence): frame names, records (JSON) and
 /// the frame rate.
 #[pyfunction]
@@ -545,6 +738,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(_read_driver, m)?)?;
     m.add_function(wrap_pyfunction!(_read_record, m)?)?;
     m.add_function(wrap_pyfunction!(write_video, m)?)?;
+    m.add_function(wrap_pyfunction!(_render_many, m)?)?;
     m.add_function(wrap_pyfunction!(_demo_file, m)?)?;
     Ok(())
 }

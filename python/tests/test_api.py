@@ -152,3 +152,102 @@ def test_the_gpu_drive_matches_the_cpu(source):
     b = gpu.avatar(DEMO / "source.png", source).render(driver, watermark=False)
     # The GPU's fine image is within 1e-5 of the CPU's: at most one 8-bit level.
     assert np.abs(a.astype(int) - b.astype(int)).max() <= 1
+
+
+def _clip(folder: Path) -> Path:
+    """Six 256x256 frames of the public-domain astronaut photo through a drifting window, as a
+    folder of PNGs (a video input that needs no decoder)."""
+    photo = Image.open(DEMO / "astronaut.jpg").convert("RGB")
+    folder.mkdir()
+    for i in range(6):
+        view = photo.crop((90 + 4 * i, 0, 370 + 4 * i, 280)).resize((256, 256), Image.BILINEAR)
+        view.save(folder / f"f{i:03d}.png")
+    return folder
+
+
+def test_a_photo_tracked_from_python_renders_as_the_cli_does(engine, tmp_path):
+    photo = DEMO / "astronaut.jpg"
+    src = engine.track(photo, output=tmp_path / "py")
+    assert src.kind == "photo" and not src.cached and src.names == ["astronaut_0"]
+    assert src.crop.shape == (512, 512, 3) and src.crop.dtype == np.uint8
+    assert src.record["shapecode"].dtype == np.float32
+    # The CLI's own tracking of the same photo, and its reenactment from that folder.
+    cli_dir = tmp_path / "cli_track"
+    subprocess.run([cli(), "track", str(photo), "-o", str(cli_dir)], check=True,
+                   capture_output=True)
+    theirs_rec = ga.read_record(cli_dir / "optim.pkl", "astronaut_0")
+    for k in ga.RECORD_KEYS:
+        np.testing.assert_array_equal(src.record[k], theirs_rec[k], err_msg=k)
+    out = tmp_path / "frames"
+    subprocess.run(
+        [cli(), "reenact", "--ckpt", str(DEMO / "weights.safetensors"), "--source", str(cli_dir),
+         "--driver", str(DEMO / "driver.json"), "--max-frames", "2", "--batch", "2",
+         "--no-watermark", "--device", "cpu", "-o", f"{out}/"],
+        check=True, capture_output=True,
+    )
+    ours = engine.avatar(src).render(ga.read_driver(DEMO / "driver.json").records[:2], batch=2,
+                                     watermark=False)
+    for k in range(2):
+        theirs = np.asarray(Image.open(out / f"frame_{k:05d}.png").convert("RGB"))
+        assert np.array_equal(ours[k], theirs), f"frame {k} differs from the CLI's"
+
+    # An array is tracked in memory; a wall is not a face.
+    mem = engine.track(np.asarray(Image.open(photo).convert("RGB")))
+    assert mem.dir is None and mem.crop.shape == (512, 512, 3)
+    assert engine.avatar(mem).render(mem).shape == (1, 64, 64, 3)
+    wall = np.tile(np.arange(160, dtype=np.uint8)[None, :, None], (120, 1, 3))
+    with pytest.raises(ga.Error, match="no face found in the image"):
+        engine.track(wall)
+    with pytest.raises(ga.Error, match="not a source"):
+        engine.avatar(ga.Tracked(["a_0"], [src.record], 25.0, "video"))
+
+
+def test_a_video_reports_progress_is_cached_and_stops_when_asked(engine, tmp_path, monkeypatch):
+    monkeypatch.setenv("GAGAVATAR_CACHE", str(tmp_path / "cache"))
+    clip = _clip(tmp_path / "clip")
+    seen = []
+    drv = engine.track(clip, progress=lambda stage, done, total: seen.append((stage, done, total)))
+    assert drv.kind == "video" and not drv.cached and len(drv) == 6
+    assert drv.names == [f"clip_{i}" for i in range(6)]
+    assert [s for s in dict.fromkeys(s for s, _, _ in seen)] == [
+        "landmarks", "fit | crop, matte, JPEG"]
+    assert seen[-1] == ("fit | crop, matte, JPEG", 12, 12)
+    before = len(seen)
+    again = engine.track(clip, progress=lambda *a: seen.append(a))
+    assert again.cached and again.dir == drv.dir and again.fps == drv.fps
+    assert len(seen) == before, "a cache hit tracks nothing, so reports nothing"
+    for a, b in zip(drv.records, again.records):
+        for k in ga.RECORD_KEYS:
+            np.testing.assert_array_equal(a[k], b[k])
+    # The tracked clip drives an avatar.
+    av = engine.avatar(DEMO / "source.png", ga.read_record(DEMO / "source.json"))
+    assert av.render(drv, watermark=False).shape == (6, 64, 64, 3)
+
+    # A callback that raises stops the run; its exception comes out and nothing is left.
+    class Stop(Exception):
+        pass
+
+    def stop(stage, done, total):
+        if done >= 3:
+            raise Stop()
+
+    with pytest.raises(Stop):
+        engine.track(clip, output=tmp_path / "stopped", progress=stop)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cache", "clip"]
+
+
+def test_render_many_batches_several_avatars(engine, avatar, source):
+    photo = engine.track(np.asarray(Image.open(DEMO / "astronaut.jpg").convert("RGB")))
+    other = engine.avatar(photo)
+    driver = ga.read_driver(DEMO / "driver.json").records[:2]
+    jobs = [(avatar, driver[0]), (other, driver[0]), (avatar, driver[1])]
+    many = ga.render_many(jobs, watermark=False)
+    assert many.shape == (3, 64, 64, 3)
+    for i, (av, rec) in enumerate(jobs):
+        alone = av.render(rec, watermark=False)[0]
+        worst = np.abs(many[i].astype(int) - alone.astype(int)).max()
+        assert worst <= 1, f"frame {i}: {worst} levels from the avatar's own render"
+    with pytest.raises(ga.Error, match="not an Avatar"):
+        ga.render_many([(source, source)])
+    with pytest.raises(ga.Error, match="at least one"):
+        ga.render_many([])

@@ -9,9 +9,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use gagavatar_avatar::{
-    Avatar, Drive, DriveTimes, Engine, EngineConfig, FlameSource, FrameCodes, SYNTHETIC_FLAME,
-};
+use gagavatar_avatar::{Avatar, Drive, DriveTimes, Engine, EngineConfig, FlameSource, FrameCodes};
 use gagavatar_flame::TrackedFrame;
 use gagavatar_net::style_unet::Noise;
 use gagavatar_video::{VideoOptions, VideoWriter};
@@ -83,15 +81,6 @@ impl SourceArgs {
             eprintln!("warning: {w}");
         }
         Ok(engine)
-    }
-}
-
-/// The FLAME asset the engine drives with, as the tracker's `--flame` argument (so a photo is
-/// tracked with the asset it will be driven with).
-pub fn tracking_flame(engine: &Engine) -> PathBuf {
-    match engine.flame_source() {
-        FlameSource::File(p) => p.clone(),
-        _ => PathBuf::from(SYNTHETIC_FLAME),
     }
 }
 
@@ -182,49 +171,30 @@ pub fn resolve_source(a: &SourceArgs, engine: &Engine) -> Result<ResolvedSource>
             label: rec.display().to_string(),
         });
     }
-    let dir = if tracking::is_tracked_folder(&a.source) {
-        a.source.clone()
-    } else {
-        tracking::tracked_inline(&a.source, &tracking_flame(engine), "source", true)?.dir
-    };
-    from_tracked_folder(&dir, a.source_key.as_deref())
+    if tracking::is_tracked_folder(&a.source) {
+        return from_tracked_folder(&a.source, a.source_key.as_deref());
+    }
+    // The library hands back the crop and record it wrote (or found in the cache).
+    let t = tracking::tracked_inline(engine, &a.source, "source", true)?;
+    let label = format!("the tracking of {}", a.source.display());
+    match (t.crop, t.records.into_iter().next()) {
+        (Some(crop), Some(record)) => Ok(ResolvedSource {
+            image: SourceImage::Crop(crop),
+            record,
+            label,
+        }),
+        _ => bail!("{label} holds no photo"),
+    }
 }
 
 /// Frame `key` of a tracked folder (its only frame when `key` is `None`): the crop from
 /// `img_lmdb/` and the record from `optim.pkl` (else `smoothed.pkl`).
 pub fn from_tracked_folder(dir: &Path, key: Option<&str>) -> Result<ResolvedSource> {
-    let pkl = [
-        gagavatar_track::output::OPTIM_FILE,
-        gagavatar_track::output::SMOOTHED_FILE,
-    ]
-    .iter()
-    .map(|f| dir.join(f))
-    .find(|p| p.is_file())
-    .with_context(|| format!("{} is not a tracked folder (no optim.pkl)", dir.display()))?;
-    let mut records = gagavatar_data::read_records(&pkl)?;
-    let key = match key {
-        Some(k) => k.to_owned(),
-        None if records.len() == 1 => records.keys().next().cloned().unwrap_or_default(),
-        None => bail!(
-            "{} holds {} frames: name one with --source-key (e.g. {})",
-            pkl.display(),
-            records.len(),
-            records.keys().next().cloned().unwrap_or_default()
-        ),
-    };
-    let record = records
-        .remove(&key)
-        .with_context(|| format!("{} has no frame `{key}`", pkl.display()))?;
-    let lmdb_path = dir.join(gagavatar_track::output::IMAGES_DIR);
-    let lmdb = gagavatar_data::LmdbReader::open(&lmdb_path)?;
-    let bytes = lmdb
-        .get(key.as_bytes())?
-        .with_context(|| format!("{} has no image `{key}`", lmdb_path.display()))?;
-    let image = gagavatar_data::decode_image(&bytes, &lmdb_path, &key)?;
+    let (image, record, label) = gagavatar_avatar::cache::read_tracked_frame(dir, key)?;
     Ok(ResolvedSource {
         image: SourceImage::Crop(image),
         record,
-        label: format!("`{key}` of {}", pkl.display()),
+        label,
     })
 }
 

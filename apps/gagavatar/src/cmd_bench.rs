@@ -779,7 +779,7 @@ fn bench_clip_frame(photo: &image::RgbImage, i: usize, n: usize) -> image::RgbIm
 }
 
 fn bench_track(args: TrackBench) -> Result<()> {
-    use crate::tracking::{median as med, Tracker};
+    use crate::tracking::{median as med, tracker_for, Bars};
     use gagavatar_video::{VideoOptions, VideoWriter};
     if args.runs == 0 || args.frames == 0 || args.threads == 0 {
         anyhow::bail!("--runs, --frames and --threads must be at least 1");
@@ -809,7 +809,7 @@ fn bench_track(args: TrackBench) -> Result<()> {
     w.finish()?;
 
     let t0 = Instant::now();
-    let tracker = Tracker::new(&args.flame)?;
+    let tracker = tracker_for(&args.flame)?;
     let load = t0.elapsed().as_secs_f64();
     println!(
         "track bench: {} threads, {} frames 512x512 H.264 from {}, models loaded in {:.0} ms",
@@ -819,26 +819,24 @@ fn bench_track(args: TrackBench) -> Result<()> {
         1e3 * load
     );
     let mut fps = Vec::new();
-    let mut stages: Vec<[f64; 3]> = Vec::new();
+    let mut stages: Vec<[f64; 2]> = Vec::new();
     for r in 0..args.runs {
         let out = tmp.join(format!("video_{r}"));
         let t = Instant::now();
         let c0 = cpu_seconds(false) + cpu_seconds(true);
-        let s = tracker.track_video_file(&clip, &out, None)?;
+        let s = tracker.track_video_file(&clip, &out, None, &Bars::default())?;
         let secs = t.elapsed().as_secs_f64();
         let cpu = cpu_seconds(false) + cpu_seconds(true) - c0;
         fps.push(s.frames as f64 / secs);
         stages.push(s.seconds.map(|x| 1e3 * x / s.frames as f64));
         println!(
             "  video run {r}: {:.1} frames/s ({:.1} ms/frame: decode + landmarks {:.1}, fit while \
-             cropping + matting + JPEG {:.1}, \
-             write {:.1}); CPU {:.1} ms/frame in all, {:.1} of it the fit's thread; {} frames \
-             without a face",
+             decoding again + cropping + matting + JPEG + writing {:.1}); CPU {:.1} ms/frame in \
+             all, {:.1} of it the fit's thread; {} frames without a face",
             s.frames as f64 / secs,
             1e3 * secs / s.frames as f64,
             stages[r][0],
             stages[r][1],
-            stages[r][2],
             1e3 * cpu / s.frames as f64,
             1e3 * s.fit_cpu_seconds / s.frames as f64,
             s.no_face

@@ -14,7 +14,7 @@ use crate::animate::SourceArgs;
 use crate::cmd_model::SYNTHETIC_FLAME;
 use crate::cmd_orbit::{ExportPlyArgs, ExpressionArgs, OrbitArgs};
 use crate::cmd_reenact::ReenactArgs;
-use crate::tracking::Tracker;
+use crate::tracking::tracker_for;
 
 #[derive(Debug, Args)]
 #[command(
@@ -128,12 +128,14 @@ pub fn run(a: DemoArgs) -> Result<()> {
     eprintln!("3/4 Gaussians as .ply");
     crate::cmd_orbit::run_export_ply(ply)?;
     eprintln!("4/4 tracking a real photo (astronaut.jpg, public domain: NASA via scikit-image)");
-    let tracker = Tracker::new(Path::new(SYNTHETIC_FLAME))?;
-    let photo = tracker.track_photo_file(
-        &assets.join("astronaut.jpg"),
-        &a.output.join("astronaut_track"),
-        Some(&a.output.join("astronaut_overlay.png")),
-    )?;
+    let tracker = tracker_for(Path::new(SYNTHETIC_FLAME))?;
+    let photo = tracker
+        .track_photo_file(
+            &assets.join("astronaut.jpg"),
+            &a.output.join("astronaut_track"),
+            Some(&a.output.join("astronaut_overlay.png")),
+        )?
+        .photo;
     eprintln!(
         "astronaut: landmark RMS {:.2} px at 512, crop window {:?}",
         photo.frame.fit_rms_px.unwrap_or(f64::NAN),

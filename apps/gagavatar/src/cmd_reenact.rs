@@ -10,7 +10,7 @@ use gagavatar_video::read::{ReadOptions, Start, VideoReader};
 use gagavatar_video::VideoOptions;
 
 use crate::animate::{
-    record_transform, resolve_source, side_by_side, tracking_flame, FrameJob, Session, SourceArgs,
+    record_transform, resolve_source, side_by_side, FrameJob, Session, SourceArgs,
 };
 use crate::tracking;
 
@@ -93,7 +93,6 @@ pub fn run(a: ReenactArgs) -> Result<()> {
     let engine = a.src.open_engine()?;
     let load = t0.elapsed();
     let source = resolve_source(&a.src, &engine)?;
-    let flame = tracking_flame(&engine);
     let driver_path = match (&a.driver, &a.driver_video) {
         (Some(d), _) => d.clone(),
         (None, Some(v)) => v.clone(),
@@ -106,9 +105,9 @@ pub fn run(a: ReenactArgs) -> Result<()> {
     let driver = if is_driving_sequence(&driver_path) {
         DriverSequence::open(&driver_path)?
     } else {
-        let tracked = tracking::tracked_inline(&driver_path, &flame, "driver", false)?;
+        let tracked = tracking::tracked_inline(&engine, &driver_path, "driver", false)?;
         let mut d = DriverSequence::open(&tracked.dir)?;
-        d.fps = tracked.meta.fps;
+        d.fps = tracked.fps;
         d
     };
     let driver_name = driver_path.display().to_string();

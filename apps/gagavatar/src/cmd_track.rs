@@ -8,7 +8,7 @@ use anyhow::{bail, Result};
 use clap::Args;
 
 use crate::cmd_model::SYNTHETIC_FLAME;
-use crate::tracking::{input_kind, report_video, InputKind, Tracker};
+use crate::tracking::{input_kind, report_video, tracker_for, Bars, InputKind};
 
 #[derive(Debug, Args)]
 #[command(
@@ -79,10 +79,12 @@ pub fn run(a: TrackArgs) -> Result<()> {
             _ => {}
         }
     }
-    let tracker = Tracker::new(&a.flame)?;
+    let tracker = tracker_for(&a.flame)?;
     match kind {
         InputKind::Photo => {
-            let photo = tracker.track_photo_file(&a.input, &a.output, a.overlay.as_deref())?;
+            let photo = tracker
+                .track_photo_file(&a.input, &a.output, a.overlay.as_deref())?
+                .photo;
             eprintln!(
                 "{}: landmark RMS {:.2} px at 512, crop window {:?}",
                 a.input.display(),
@@ -91,7 +93,12 @@ pub fn run(a: TrackArgs) -> Result<()> {
             );
         }
         InputKind::Video => {
-            let s = tracker.track_video_file(&a.input, &a.output, a.overlay.as_deref())?;
+            let s = tracker.track_video_file(
+                &a.input,
+                &a.output,
+                a.overlay.as_deref(),
+                &Bars::default(),
+            )?;
             report_video(&a.input, &s);
         }
     }

@@ -107,6 +107,11 @@ const MALLOC_HEAP_MAX: i32 = 1 << 30;
 static INTERRUPTED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
 
 /// An error once Ctrl-C was pressed.
+/// Whether Ctrl-C was pressed (the library's monitors poll this to cancel).
+pub fn interrupted() -> bool {
+    INTERRUPTED.load(std::sync::atomic::Ordering::Relaxed)
+}
+
 pub fn check_interrupt() -> anyhow::Result<()> {
     if INTERRUPTED.load(std::sync::atomic::Ordering::Relaxed) {
         anyhow::bail!("interrupted (Ctrl-C); no output was written");

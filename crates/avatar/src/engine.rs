@@ -2,7 +2,7 @@
 //! reconstructing avatars from a source crop and its tracked record.
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use candle_core::{DType, Device, Tensor};
 use gagavatar_flame::{BasisLayout, FlameAsset, FlameModel, LoadOptions, TrackedFrame};
@@ -12,8 +12,11 @@ use gagavatar_net::style_unet::Noise;
 use gagavatar_net::ModelConfig;
 
 use crate::avatar::Avatar;
+use crate::cache::{track_input, TrackTo, Tracked};
 use crate::convert::{image_tensor, transforms_tensor};
 use crate::error::{input_err, AvatarError, Result};
+use crate::monitor::Monitor;
+use crate::tracking::{PhotoTrack, Tracker};
 
 /// Which FLAME asset drives the avatars.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
@@ -83,6 +86,8 @@ pub struct Engine {
     noise: Noise,
     flame_label: String,
     warnings: Vec<String>,
+    /// The tracking models, loaded on first use (rendering alone never needs them).
+    tracker: Mutex<Option<Arc<Tracker>>>,
 }
 
 impl Engine {
@@ -149,6 +154,7 @@ impl Engine {
             noise: cfg.noise,
             flame_label,
             warnings,
+            tracker: Mutex::new(None),
         })
     }
 
@@ -179,6 +185,51 @@ impl Engine {
     /// probably not trained with). The library prints nothing itself.
     pub fn warnings(&self) -> &[String] {
         &self.warnings
+    }
+
+    /// The tracker, with the engine's FLAME asset, so records fit the avatars it drives.
+    /// Loaded on first use and kept.
+    pub fn tracker(&self) -> Result<Arc<Tracker>> {
+        let mut slot = self.tracker.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(t) = slot.as_ref() {
+            return Ok(t.clone());
+        }
+        let t = Arc::new(Tracker::new(&self.flame_source)?);
+        *slot = Some(t.clone());
+        Ok(t)
+    }
+
+    /// Tracks a photo in memory: its record and its 512 crop (as a tracked folder would store
+    /// it), ready for [`Engine::avatar`]. `label` names it in "no face found in LABEL".
+    pub fn track_photo(&self, image: &image::RgbImage, label: &str) -> Result<PhotoTrack> {
+        self.tracker()?.track_photo(image, label)
+    }
+
+    /// Tracks a photo, a video or a folder of images into `to` (a folder, or the cache where a
+    /// previous run's folder for the same bytes is reused), and returns what it holds.
+    pub fn track(&self, input: &Path, to: &TrackTo, monitor: &dyn Monitor) -> Result<Tracked> {
+        self.track_as(input, to, "input", false, monitor)
+    }
+
+    /// [`Engine::track`], naming the input `what` in messages (`source`, `driver`), and with
+    /// `photo_only` refusing anything but a photo.
+    pub fn track_as(
+        &self,
+        input: &Path,
+        to: &TrackTo,
+        what: &str,
+        photo_only: bool,
+        monitor: &dyn Monitor,
+    ) -> Result<Tracked> {
+        track_input(
+            input,
+            &self.flame_source,
+            to,
+            what,
+            photo_only,
+            || self.tracker(),
+            monitor,
+        )
     }
 
     /// Reconstructs an avatar from the source crop and its tracked record (the record's shape

@@ -32,6 +32,27 @@ pub enum AvatarError {
     /// A caller-supplied input (record, image, camera, batch) is unusable.
     #[error("{what}: {reason}")]
     Input { what: String, reason: String },
+    /// A monitor asked to stop ([`crate::Monitor::cancelled`]); nothing was left half-written.
+    #[error("cancelled; no output was written")]
+    Cancelled,
+    /// A file or folder the library reads or writes itself (the tracking cache).
+    #[error("{what} {}", path.display())]
+    Io {
+        what: &'static str,
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Track(#[from] gagavatar_track::TrackError),
+    #[error(transparent)]
+    Face(#[from] gagavatar_face::FaceError),
+    #[error(transparent)]
+    Video(#[from] gagavatar_video::VideoError),
+    #[error(transparent)]
+    Format(#[from] gagavatar_formats::FormatError),
+    #[error(transparent)]
+    Data(#[from] gagavatar_data::DataError),
     #[error(transparent)]
     Net(#[from] gagavatar_net::NetError),
     #[error(transparent)]
@@ -49,4 +70,12 @@ pub(crate) fn input_err(what: impl Into<String>, reason: impl Into<String>) -> A
         what: what.into(),
         reason: reason.into(),
     }
+}
+
+pub(crate) fn io_err(
+    what: &'static str,
+    path: &std::path::Path,
+) -> impl FnOnce(std::io::Error) -> AvatarError {
+    let path = path.to_owned();
+    move |source| AvatarError::Io { what, path, source }
 }

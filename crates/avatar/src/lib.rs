@@ -14,20 +14,28 @@
 //! # let _ = frame; Ok(()) }
 //! ```
 //!
+//! Tracking is here too: [`Engine::track`] turns a photo or a video into records and crops
+//! (in a folder of the release's layout, or the content-addressed cache), and
+//! [`Engine::track_photo`] a photo in memory into the record and crop [`Engine::avatar`] takes.
+//!
 //! Loading happens once ([`Engine::open`]); an [`Avatar`] is reconstructed once per source and
 //! driven any number of times through a [`Drive`] ([`CpuDrive`] or [`GpuDrive`]). The library
 //! prints nothing: warnings are returned ([`Engine::warnings`]), errors are typed
 //! ([`AvatarError`]).
 
 pub mod avatar;
+pub mod cache;
 pub mod convert;
 pub mod drive;
 pub mod engine;
 mod error;
 pub mod many;
+pub mod monitor;
 pub mod orbit;
+pub mod tracking;
 
 pub use avatar::Avatar;
+pub use cache::{TrackTo, Tracked};
 pub use convert::{image_tensor, to_rgb8, transforms_tensor};
 pub use drive::{Camera, CpuDrive, Drive, DriveTimes, GpuDrive};
 pub use engine::{
@@ -37,3 +45,5 @@ pub use engine::{
 pub use error::{AvatarError, Result};
 pub use gagavatar_gpu::flame::FrameCodes;
 pub use many::render_many;
+pub use monitor::{CancelToken, Monitor, NoMonitor};
+pub use tracking::{InputKind, PhotoTrack, Tracker};

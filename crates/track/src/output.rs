@@ -271,10 +271,15 @@ fn json(path: &Path, t: &TrackJson) -> Result<()> {
 /// Writes a tracked photo: `img_lmdb/` (one crop, key `<name>_0`), `optim.pkl`, `track.json`.
 /// `crop` is the (matted) 512 crop through the photo's window.
 pub fn write_photo(dir: &Path, name: &str, photo: &TrackedPhoto, crop: &RgbImage) -> Result<()> {
-    let name = sanitize_name(name);
     check_crop(crop, 0)?;
+    write_photo_jpeg(dir, name, photo, encode_jpeg(crop)?)
+}
+
+/// [`write_photo`] with the crop already encoded ([`encode_jpeg`] of the 512 crop), so a caller
+/// that keeps the crop holds exactly the pixels the folder stores.
+pub fn write_photo_jpeg(dir: &Path, name: &str, photo: &TrackedPhoto, jpeg: Vec<u8>) -> Result<()> {
+    let name = sanitize_name(name);
     let key = frame_key(&name, 0);
-    let jpeg = encode_jpeg(crop)?;
     let records = BTreeMap::from([(key.clone(), photo.frame.record.clone())]);
     let track = TrackJson {
         format: TRACK_JSON_FORMAT.into(),
@@ -333,40 +338,34 @@ pub fn write_video_jpegs(
     video: &TrackedVideo,
     jpegs: impl IntoIterator<Item = Result<Vec<u8>>>,
 ) -> Result<()> {
+    write_video_dir(dir, name, video.frames.len(), jpegs, || Ok(video)).map(|_| ())
+}
+
+/// Writes a tracked video whose records are finished while its crops are written (the fit can
+/// run beside the cropping, and no frame or crop is held longer than it takes to write it):
+/// the `n` JPEGs are streamed into `img_lmdb/` first, then `finish` gives the tracked video
+/// (its `n` frames), whose records, `optim.pkl`, `smoothed.pkl` and `track.json` complete the
+/// folder. The first error, of either, leaves nothing behind. Returns the tracked video.
+pub fn write_video_streaming(
+    dir: &Path,
+    name: &str,
+    n: usize,
+    jpegs: impl IntoIterator<Item = Result<Vec<u8>>>,
+    finish: impl FnOnce() -> Result<TrackedVideo>,
+) -> Result<TrackedVideo> {
+    write_video_dir(dir, name, n, jpegs, finish)
+}
+
+fn write_video_dir<V: std::borrow::Borrow<TrackedVideo>>(
+    dir: &Path,
+    name: &str,
+    n: usize,
+    jpegs: impl IntoIterator<Item = Result<Vec<u8>>>,
+    finish: impl FnOnce() -> Result<V>,
+) -> Result<V> {
     let name = sanitize_name(name);
-    let n = video.frames.len();
-    if video.raw_records.len() != n {
-        return Err(TrackError::Output {
-            path: dir.to_owned(),
-            reason: format!("{n} frames but {} raw records", video.raw_records.len()),
-        });
-    }
     let keys: Vec<String> = (0..n).map(|i| frame_key(&name, i)).collect();
-    let optim: BTreeMap<String, TrackedFrame> = keys
-        .iter()
-        .cloned()
-        .zip(video.raw_records.iter().cloned())
-        .collect();
-    let smoothed: BTreeMap<String, TrackedFrame> = keys
-        .iter()
-        .cloned()
-        .zip(video.frames.iter().map(|f| f.record.clone()))
-        .collect();
-    let track = TrackJson {
-        format: TRACK_JSON_FORMAT.into(),
-        version: TRACK_JSON_VERSION,
-        kind: "video".into(),
-        name: name.clone(),
-        coordinates: COORDINATES.into(),
-        keyframes: video.keyframes.clone(),
-        fps: video.fps,
-        frames: video
-            .frames
-            .iter()
-            .enumerate()
-            .map(|(i, f)| json_frame(&name, i, f))
-            .collect::<Result<_>>()?,
-    };
+    let mut done = None;
     write_dir(dir, |tmp| {
         let mut failure: Option<TrackError> = None;
         let mut count = 0usize;
@@ -398,8 +397,117 @@ pub fn write_video_jpegs(
                 reason: format!("{n} frames tracked but a different number of crops given"),
             });
         }
-        pickle(&tmp.join(OPTIM_FILE), &optim)?;
-        pickle(&tmp.join(SMOOTHED_FILE), &smoothed)?;
-        json(&tmp.join(TRACK_JSON), &track)
+        let owned = finish()?;
+        let video: &TrackedVideo = owned.borrow();
+        write_records(tmp, &name, &keys, video)?;
+        done = Some(owned);
+        Ok(())
+    })?;
+    done.ok_or_else(|| TrackError::Output {
+        path: dir.to_owned(),
+        reason: "internal: the folder was written without its records".into(),
     })
+}
+
+/// `optim.pkl`, `smoothed.pkl` and `track.json` of a tracked video, into `tmp`.
+fn write_records(tmp: &Path, name: &str, keys: &[String], video: &TrackedVideo) -> Result<()> {
+    let n = keys.len();
+    if video.frames.len() != n || video.raw_records.len() != n {
+        return Err(TrackError::Output {
+            path: tmp.to_owned(),
+            reason: format!(
+                "{n} crops but {} frames and {} raw records",
+                video.frames.len(),
+                video.raw_records.len()
+            ),
+        });
+    }
+    let optim: BTreeMap<String, TrackedFrame> = keys
+        .iter()
+        .cloned()
+        .zip(video.raw_records.iter().cloned())
+        .collect();
+    pickle(&tmp.join(OPTIM_FILE), &optim)?;
+    drop(optim);
+    let smoothed: BTreeMap<String, TrackedFrame> = keys
+        .iter()
+        .cloned()
+        .zip(video.frames.iter().map(|f| f.record.clone()))
+        .collect();
+    pickle(&tmp.join(SMOOTHED_FILE), &smoothed)?;
+    drop(smoothed);
+    let path = tmp.join(TRACK_JSON);
+    let file = std::fs::File::create(&path).map_err(|e| TrackError::Output {
+        path: path.clone(),
+        reason: format!("cannot write: {e}"),
+    })?;
+    let mut out = std::io::BufWriter::new(file);
+    let err = |reason: String| TrackError::Output {
+        path: path.clone(),
+        reason,
+    };
+    serde_json::to_writer(&mut out, &VideoJson { name, video }).map_err(|e| err(e.to_string()))?;
+    std::io::Write::flush(&mut out).map_err(|e| err(format!("cannot write: {e}")))
+}
+
+/// A video's `track.json` as a value (what [`write_video`] writes frame by frame without holding
+/// it; a test compares the two byte for byte).
+pub fn video_track_json(name: &str, video: &TrackedVideo) -> Result<TrackJson> {
+    let name = sanitize_name(name);
+    Ok(TrackJson {
+        format: TRACK_JSON_FORMAT.into(),
+        version: TRACK_JSON_VERSION,
+        kind: "video".into(),
+        name: name.clone(),
+        coordinates: COORDINATES.into(),
+        keyframes: video.keyframes.clone(),
+        fps: video.fps,
+        frames: video
+            .frames
+            .iter()
+            .enumerate()
+            .map(|(i, f)| json_frame(&name, i, f))
+            .collect::<Result<_>>()?,
+    })
+}
+
+/// A video's `track.json`, serialized frame by frame straight to the file, so a long clip's
+/// JSON is never held whole: the same fields in the same order as [`TrackJson`].
+struct VideoJson<'a> {
+    name: &'a str,
+    video: &'a TrackedVideo,
+}
+
+impl Serialize for VideoJson<'_> {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        use serde::ser::{Error, SerializeSeq, SerializeStruct};
+        struct Frames<'a>(&'a VideoJson<'a>);
+        impl Serialize for Frames<'_> {
+            fn serialize<S: serde::Serializer>(
+                &self,
+                s: S,
+            ) -> std::result::Result<S::Ok, S::Error> {
+                let frames = &self.0.video.frames;
+                let mut seq = s.serialize_seq(Some(frames.len()))?;
+                for (i, f) in frames.iter().enumerate() {
+                    let jf = json_frame(self.0.name, i, f).map_err(S::Error::custom)?;
+                    seq.serialize_element(&jf)?;
+                }
+                seq.end()
+            }
+        }
+        let mut m = s.serialize_struct("TrackJson", 8)?;
+        m.serialize_field("format", TRACK_JSON_FORMAT)?;
+        m.serialize_field("version", &TRACK_JSON_VERSION)?;
+        m.serialize_field("kind", "video")?;
+        m.serialize_field("name", self.name)?;
+        m.serialize_field("coordinates", COORDINATES)?;
+        m.serialize_field("keyframes", &self.video.keyframes)?;
+        match self.video.fps {
+            Some(fps) => m.serialize_field("fps", &fps)?,
+            None => m.skip_field("fps")?,
+        }
+        m.serialize_field("frames", &Frames(self))?;
+        m.end()
+    }
 }

@@ -8,8 +8,8 @@ use gagavatar_data::records::read_records;
 use gagavatar_data::{DriverSequence, LmdbReader};
 use gagavatar_track::crop::crop_image;
 use gagavatar_track::output::{
-    read_track_json, sanitize_name, write_photo, write_video, IMAGES_DIR, OPTIM_FILE,
-    SMOOTHED_FILE, TRACK_JSON,
+    read_track_json, sanitize_name, video_track_json, write_photo, write_video, IMAGES_DIR,
+    OPTIM_FILE, SMOOTHED_FILE, TRACK_JSON,
 };
 use gagavatar_track::pipeline::{track_photo, track_video, TrackOptions};
 use gagavatar_track::{Observation, TrackError, TrackedPhoto, TrackedVideo};
@@ -157,6 +157,10 @@ fn video_folder_reads_back_and_is_all_or_nothing() {
     assert_eq!(lmdb.len(), 5);
     let tj = read_track_json(&dir.join(TRACK_JSON)).unwrap();
     assert_eq!(tj.frames.len(), 5);
+    // The frame-by-frame writer writes what the whole `TrackJson` value writes, byte for byte.
+    let text = std::fs::read_to_string(dir.join(TRACK_JSON)).unwrap();
+    let whole = serde_json::to_string(&video_track_json("clip", &v).unwrap()).unwrap();
+    assert!(text == whole, "track.json differs from the TrackJson value");
     assert!(!tj.frames[2].face_found && tj.frames[2].landmarks_detected.is_none());
     let d = DriverSequence::open(&dir).unwrap();
     assert_eq!(d.frames.len(), 5);
