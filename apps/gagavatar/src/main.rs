@@ -11,6 +11,7 @@ mod cmd_flame;
 mod cmd_model;
 mod cmd_orbit;
 mod cmd_reenact;
+mod cmd_serve;
 mod cmd_splat;
 mod cmd_synth;
 mod cmd_track;
@@ -76,6 +77,8 @@ enum Command {
     Eval(cmd_eval::EvalArgs),
     /// Time training steps (forward, loss, backward, Adam) on a synthetic batch.
     TrainBench(cmd_train::TrainBenchArgs),
+    /// A local web app and HTTP API: photo in, avatar, sliders, orbit, reenact, .ply.
+    Serve(cmd_serve::ServeArgs),
 }
 
 /// Two glibc malloc settings for a process whose large tensors are allocated and freed over and
@@ -147,6 +150,7 @@ fn main() {
         Command::Train(args) => cmd_train::run_train(args),
         Command::Eval(args) => cmd_eval::run(args),
         Command::TrainBench(args) => cmd_train::run_bench(args),
+        Command::Serve(args) => cmd_serve::run(args),
     };
     if let Err(err) = result {
         eprintln!("error: {err:#}");

@@ -69,6 +69,22 @@ impl Avatar {
         &self.flame
     }
 
+    /// Bytes this avatar holds of its own (its Gaussians; the model and FLAME are the engine's),
+    /// for a cache's memory budget.
+    pub fn memory_bytes(&self) -> usize {
+        let g = &self.gaussians;
+        [
+            &g.lifted_xyz,
+            &g.colors,
+            &g.opacities,
+            &g.scales,
+            &g.rotations,
+        ]
+        .iter()
+        .map(|t| t.elem_count() * t.dtype().size_in_bytes())
+        .sum()
+    }
+
     /// The side of the square frames it renders.
     pub fn image_size(&self) -> usize {
         self.model.cfg.image_size
