@@ -51,6 +51,17 @@ exercises every metric on real faces. Prints the load average before and after.\
 gagavatar bench eval --data tracked_test --pairs 100 --threads 2"
     )]
     Eval(EvalBench),
+    /// The server under load on loopback: concurrent clients rendering frames of several
+    /// avatars, with batching and one request at a time, every answer checked.
+    #[command(
+        after_help = "Runs the server in this process (the demo model unless --ckpt), makes an \
+avatar of the astronaut photo and of its mirror image, then for each --max-batch value lets \
+--clients clients send --requests render requests each. Prints frames/s, client-side p50/p99 \
+latency, renderer calls, upload-to-first-frame time, memory per cached avatar and peak \
+memory.\n\nExample:\n  gagavatar bench serve --clients 32 --requests 8 --threads 2\n  \
+gagavatar bench serve --ckpt release.safetensors --flame synthetic --clients 32 --requests 1"
+    )]
+    Serve(crate::cmd_bench_serve::ServeBench),
     /// Tracking: a 512x512 video end to end (decode, detection + landmarks, matte, FLAME fit,
     /// crop, JPEG and LMDB write) in frames/s, and a photo's latency.
     #[command(
@@ -185,20 +196,15 @@ pub fn run(cmd: BenchCmd) -> Result<()> {
         BenchCmd::Face(args) => bench_face(args),
         BenchCmd::Eval(args) => bench_eval(args),
         BenchCmd::Track(args) => bench_track(args),
+        BenchCmd::Serve(args) => crate::cmd_bench_serve::bench_serve(args),
     }
 }
+
+pub use crate::procstat::peak_rss_mib;
 
 fn median(v: &mut [f64]) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     v[v.len() / 2]
-}
-
-/// Peak resident memory of this process (Linux `VmHWM`), in MiB.
-pub fn peak_rss_mib() -> Option<f64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb / 1024.0)
 }
 
 fn bench_splat(args: SplatBench) -> Result<()> {

@@ -4,6 +4,7 @@
 mod animate;
 mod cmd_bench;
 mod cmd_bench_drive;
+mod cmd_bench_serve;
 mod cmd_demo;
 mod cmd_eval;
 mod cmd_face;
@@ -19,6 +20,7 @@ mod cmd_train;
 mod cmd_video;
 mod device_args;
 mod eval_args;
+mod procstat;
 mod progress;
 mod tracking;
 

@@ -14,8 +14,8 @@ use image::RgbImage;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::engine::FlameSource;
 use crate::error::{input_err, io_err, Result};
+use crate::flame_source::FlameSource;
 use crate::monitor::{check, Finish, Monitor};
 use crate::tracking::{input_kind, input_name, InputKind, Tracker, VideoSummary};
 

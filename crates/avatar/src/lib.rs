@@ -29,6 +29,7 @@ pub mod convert;
 pub mod drive;
 pub mod engine;
 mod error;
+pub mod flame_source;
 pub mod many;
 pub mod monitor;
 pub mod orbit;

@@ -35,8 +35,8 @@ use gagavatar_video::{VideoOptions, VideoWriter};
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
 
-use crate::engine::FlameSource;
 use crate::error::{input_err, io_err, AvatarError, Result};
+use crate::flame_source::FlameSource;
 use crate::monitor::{check, Finish, Monitor};
 
 /// Photos larger than this (long side) are tracked downscaled; the networks see at most 256 px.

@@ -16,6 +16,7 @@ pub mod batcher;
 pub mod client;
 pub mod error;
 pub mod jobs;
+pub mod loadtest;
 pub mod metrics;
 pub mod page;
 pub mod store;
@@ -138,4 +139,61 @@ pub async fn serve(
     axum::serve(listener, router(state))
         .with_graceful_shutdown(shutdown)
         .await
+}
+
+/// A server on a loopback port in its own thread and runtime (tests, the load benchmark);
+/// stopped and joined when dropped.
+pub struct LocalServer {
+    pub addr: std::net::SocketAddr,
+    pub state: Arc<AppState>,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<std::io::Result<()>>>,
+}
+
+impl LocalServer {
+    pub fn start(state: Arc<AppState>) -> std::io::Result<LocalServer> {
+        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+        let (atx, arx) = std::sync::mpsc::channel();
+        let st = state.clone();
+        let thread = std::thread::spawn(move || -> std::io::Result<()> {
+            let rt = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .build()?;
+            rt.block_on(async move {
+                let l = match tokio::net::TcpListener::bind("127.0.0.1:0").await {
+                    Ok(l) => l,
+                    Err(e) => {
+                        let _ = atx.send(Err(e));
+                        return Ok(());
+                    }
+                };
+                let _ = atx.send(l.local_addr());
+                serve(l, st, async {
+                    let _ = rx.await;
+                })
+                .await
+            })
+        });
+        let addr = arx
+            .recv()
+            .map_err(|_| std::io::Error::other("the server thread stopped before it listened"))??;
+        Ok(LocalServer {
+            addr,
+            state,
+            stop: Some(tx),
+            thread: Some(thread),
+        })
+    }
+}
+
+impl Drop for LocalServer {
+    fn drop(&mut self) {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
 }

@@ -2,14 +2,13 @@
 //! photo the repository ships: what each route answers, the limits and their status codes, the
 //! token, batching, LRU eviction, a disconnecting client, and a reenact job end to end.
 
-use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
 use gagavatar_avatar::{Drive, Engine, EngineConfig};
 use gagavatar_serve::client::{request, Answer};
-use gagavatar_serve::{AppState, BatchConfig, ServeConfig};
+use gagavatar_serve::{AppState, BatchConfig, LocalServer, ServeConfig};
 
 /// Batched renderer calls may sum in another order than a single frame: one 8-bit level.
 const BATCH_LEVELS: i32 = 1;
@@ -27,11 +26,13 @@ fn astronaut() -> Vec<u8> {
 }
 
 /// A server on a free loopback port, stopped when dropped.
-struct Server {
-    addr: SocketAddr,
-    state: Arc<AppState>,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    thread: Option<std::thread::JoinHandle<()>>,
+struct Server(LocalServer);
+
+impl std::ops::Deref for Server {
+    type Target = LocalServer;
+    fn deref(&self) -> &LocalServer {
+        &self.0
+    }
 }
 
 impl Server {
@@ -39,33 +40,7 @@ impl Server {
         Self::with_engine(engine(), cfg)
     }
     fn with_engine(engine: Arc<Engine>, cfg: ServeConfig) -> Server {
-        // The tracking cache of this test process, not the user's.
-        let state = AppState::new(engine, cfg).unwrap();
-        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        let (atx, arx) = std::sync::mpsc::channel();
-        let st = state.clone();
-        let thread = std::thread::spawn(move || {
-            let rt = tokio::runtime::Builder::new_multi_thread()
-                .worker_threads(2)
-                .enable_all()
-                .build()
-                .unwrap();
-            rt.block_on(async move {
-                let l = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-                atx.send(l.local_addr().unwrap()).unwrap();
-                gagavatar_serve::serve(l, st, async {
-                    let _ = rx.await;
-                })
-                .await
-                .unwrap();
-            });
-        });
-        Server {
-            addr: arx.recv().unwrap(),
-            state,
-            stop: Some(tx),
-            thread: Some(thread),
-        }
+        Server(LocalServer::start(AppState::new(engine, cfg).unwrap()).unwrap())
     }
     fn get(&self, path: &str) -> Answer {
         request(self.addr, "GET", path, &[], &[]).unwrap()
@@ -92,17 +67,6 @@ impl Server {
             a.text()
         );
         a.json()["id"].as_str().unwrap().to_string()
-    }
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        if let Some(s) = self.stop.take() {
-            let _ = s.send(());
-        }
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
     }
 }
 

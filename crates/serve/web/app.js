@@ -29,6 +29,10 @@ async function api(path, opts = {}) {
   return r;
 }
 
+function took(ms) {
+  return ms < 1000 ? Math.round(ms) + " ms" : (ms / 1000).toFixed(1) + " s";
+}
+
 function showError(text) {
   const m = $("message");
   m.textContent = text;
@@ -66,10 +70,9 @@ async function upload(file) {
     $("ply").href = authed("/v1/avatars/" + a.id + "/avatar.ply");
     resetControls();
     await renderNow();
-    const secs = ((performance.now() - t0) / 1000).toFixed(1);
     $("status").textContent = (a.cached ? "Found this photo's avatar in memory" :
-      "Tracked in " + (a.track_ms / 1000).toFixed(1) + " s, reconstructed in " +
-      (a.reconstruct_ms / 1000).toFixed(1) + " s") + "; first frame after " + secs + " s.";
+      "Tracked in " + took(a.track_ms) + ", reconstructed in " + took(a.reconstruct_ms)) +
+      "; first frame after " + took(performance.now() - t0) + ".";
     $("avatar-panel").hidden = false;
     $("video-panel").hidden = false;
   } catch (e) {
