@@ -163,3 +163,38 @@ test("an uploaded video is reenacted and plays beside the driver", async () => {
   await page.screenshot({ path: path.join(out, "reenact.png"), fullPage: true });
   await page.close();
 });
+
+test("the webcam drives the avatar live (Chromium's fake camera playing a clip)", async () => {
+  const y4m = path.join(scratch, "cam.y4m");
+  execFileSync("ffmpeg", [
+    "-loglevel", "error", "-y", "-loop", "1", "-framerate", "10", "-i", astronaut,
+    "-vf", "crop=300:300:80+6*n:0,scale=320:240", "-frames:v", "10", "-pix_fmt", "yuv420p", y4m,
+  ]);
+  const camBrowser = await chromium.launch({
+    executablePath: browserPath,
+    headless: true,
+    args: [
+      "--no-sandbox",
+      "--use-fake-ui-for-media-stream",
+      "--use-fake-device-for-media-stream",
+      "--use-file-for-fake-video-capture=" + y4m,
+    ],
+  });
+  try {
+    const page = await camBrowser.newPage({ viewport: { width: 1400, height: 900 } });
+    const errors = [];
+    page.on("pageerror", (e) => errors.push(e.message));
+    await page.goto(url);
+    await page.locator("#file").setInputFiles(astronaut);
+    await page.locator("#avatar-panel").waitFor({ state: "visible", timeout: 120000 });
+    await page.locator("#webcam").click();
+    await page.waitForFunction(() => parseInt(document.getElementById("frame").dataset.live || "0", 10) >= 5, null, { timeout: 120000 });
+    assert.equal(await page.locator("#live-status").innerText(), "live");
+    await page.screenshot({ path: path.join(out, "webcam.png"), fullPage: true });
+    await page.locator("#webcam").click();
+    assert.ok(await page.locator("#cam").isHidden(), "the camera preview stays after stopping");
+    assert.deepEqual(errors, []);
+  } finally {
+    await camBrowser.close();
+  }
+});

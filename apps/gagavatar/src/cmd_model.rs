@@ -149,7 +149,7 @@ pub fn with_flag_hints(e: gagavatar_avatar::AvatarError) -> anyhow::Error {
             n_shape,
             n_exp,
             source,
-        } => anyhow::Error::new(source).context(format!(
+        } => anyhow::Error::new(*source).context(format!(
             "loading FLAME {} as {n_shape} shape + {n_exp} expression components (--n-shape, \
              --n-exp)",
             path.display()

@@ -84,7 +84,7 @@ impl Engine {
             .transpose()?;
         let weights_err = |source| AvatarError::Weights {
             path: cfg.weights.clone(),
-            source,
+            source: Box::new(source),
         };
         let weights = checkpoint::read_weights(&cfg.weights).map_err(weights_err)?;
         let trained_with = weights
@@ -262,7 +262,7 @@ pub fn load_flame(
                     path: path.clone(),
                     n_shape,
                     n_exp,
-                    source,
+                    source: Box::new(source),
                 })?;
             (asset, path.display().to_string())
         }

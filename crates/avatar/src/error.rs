@@ -9,7 +9,7 @@ pub enum AvatarError {
     Weights {
         path: PathBuf,
         #[source]
-        source: gagavatar_net::NetError,
+        source: Box<gagavatar_net::NetError>,
     },
     /// The FLAME asset could not be read with the requested component counts.
     #[error(
@@ -21,7 +21,14 @@ pub enum AvatarError {
         n_shape: usize,
         n_exp: usize,
         #[source]
-        source: gagavatar_flame::FlameError,
+        source: Box<gagavatar_flame::FlameError>,
+    },
+    /// The FLAME asset the tracker fits with could not be read.
+    #[error("loading FLAME {}", path.display())]
+    FlameFile {
+        path: PathBuf,
+        #[source]
+        source: Box<gagavatar_flame::FlameError>,
     },
     /// No FLAME asset was named and the weights do not say which one they were trained with.
     #[error("{0}")]

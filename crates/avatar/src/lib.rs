@@ -47,4 +47,4 @@ pub use error::{AvatarError, Result};
 pub use gagavatar_gpu::flame::FrameCodes;
 pub use many::render_many;
 pub use monitor::{CancelToken, Monitor, NoMonitor};
-pub use tracking::{InputKind, PhotoTrack, Tracker};
+pub use tracking::{InputKind, LiveTracker, PhotoTrack, Tracker};

@@ -80,11 +80,9 @@ pub fn input_name(path: &Path) -> String {
 pub fn load_flame_asset(source: &FlameSource) -> Result<FlameAsset> {
     match source {
         FlameSource::File(p) => {
-            FlameAsset::load(p, &LoadOptions::default()).map_err(|source| AvatarError::FlameAsset {
+            FlameAsset::load(p, &LoadOptions::default()).map_err(|source| AvatarError::FlameFile {
                 path: p.clone(),
-                n_shape: 0,
-                n_exp: 0,
-                source,
+                source: Box::new(source),
             })
         }
         _ => Ok(gagavatar_flame::synthesize(0)),
@@ -464,6 +462,45 @@ impl Tracker {
         }
         writer.finish()?;
         Ok(())
+    }
+}
+
+/// Tracks a live stream (a webcam) frame by frame: MediaPipe's face tracker carries its region
+/// of interest from frame to frame, and the fit keeps the first frame's shape
+/// ([`gagavatar_track::LiveTrack`]).
+pub struct LiveTracker {
+    tracker: std::sync::Arc<Tracker>,
+    face: FaceTracker,
+    live: gagavatar_track::LiveTrack,
+}
+
+impl LiveTracker {
+    pub fn new(tracker: std::sync::Arc<Tracker>) -> Self {
+        LiveTracker {
+            face: FaceTracker::with_models(tracker.mesh.clone()),
+            tracker,
+            live: gagavatar_track::LiveTrack::new(),
+        }
+    }
+
+    /// The record of the next frame; `None` when it shows no face.
+    pub fn frame(&mut self, img: &RgbImage) -> Result<Option<TrackedFrame>> {
+        let (w, h) = img.dimensions();
+        if w.min(h) < MIN_SIDE {
+            return Err(input_err(
+                "a live frame",
+                format!("it is {w}x{h}; a face needs at least {MIN_SIDE} pixels a side"),
+            ));
+        }
+        let lm = self
+            .face
+            .process(img)?
+            .map(|f| landmarks_of(&f, w, h))
+            .transpose()?;
+        let obs = Observation::new(w, h, lm)?;
+        Ok(self
+            .live
+            .frame(&obs, &self.tracker.rig, &self.tracker.opts)?)
     }
 }
 

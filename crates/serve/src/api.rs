@@ -12,6 +12,7 @@
 //! | `GET /v1/jobs/{id}` | | progress `{state, stage, done, total, error}` |
 //! | `GET /v1/jobs/{id}/result.mp4` | | the reenactment |
 //! | `DELETE /v1/jobs/{id}` | | 204; cancels a running job |
+//! | `GET /v1/avatars/{id}/live` | WebSocket: camera frames (JPEG/PNG, binary) in | rendered JPEG frames out; text `{"error"}` / `{"face": false}` notes |
 //! | `GET /v1/health`, `GET /metrics` | | JSON; Prometheus text |
 
 use std::io::Cursor;
@@ -55,6 +56,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/avatars/{id}/avatar.ply", get(avatar_ply))
         .route("/v1/avatars/{id}/render", post(render))
         .route("/v1/avatars/{id}/reenact", post(reenact))
+        .route("/v1/avatars/{id}/live", get(live))
         .route("/v1/jobs/{id}", get(job_status).delete(delete_job))
         .route("/v1/jobs/{id}/result.mp4", get(job_result))
         .route("/metrics", get(metrics))
@@ -764,4 +766,133 @@ async fn delete_job(State(s): St, Path(id): Path<String>) -> ApiResult<StatusCod
         let _ = std::fs::remove_dir_all(&j.dir);
     }
     Ok(StatusCode::NO_CONTENT)
+}
+
+/// Live driving over a WebSocket: each binary message is a camera frame (JPEG or PNG); the
+/// server tracks it in video mode (the face tracker's ROI and the fit carried from frame to
+/// frame), renders the avatar with its codes and camera through the shared batcher, and answers
+/// with the frame as JPEG. A frame without a face answers `{"face": false}` as text; a bad frame
+/// answers `{"error": ...}`; the session goes on. The client sends its next frame after the answer, so nothing queues up.
+async fn live(
+    State(s): St,
+    Path(id): Path<String>,
+    ws: axum::extract::ws::WebSocketUpgrade,
+) -> ApiResult<Response> {
+    let st = stored(&s, &id)?;
+    let open = s.live_sessions.load(Ordering::SeqCst);
+    if open >= s.cfg.max_live {
+        return Err(ApiError::too_many(
+            "this server is driving as many live sessions as it takes; try again later",
+            10,
+        ));
+    }
+    let limit = s.cfg.max_photo_bytes;
+    Ok(ws
+        .max_message_size(limit)
+        .on_upgrade(move |socket| live_session(s, st, socket)))
+}
+
+/// Counts an open live session; uncounted when dropped.
+struct LiveCount(Arc<AppState>);
+impl Drop for LiveCount {
+    fn drop(&mut self) {
+        self.0.live_sessions.fetch_sub(1, Ordering::SeqCst);
+    }
+}
+
+async fn live_session(s: Arc<AppState>, st: Arc<Stored>, mut socket: axum::extract::ws::WebSocket) {
+    use axum::extract::ws::Message;
+    s.live_sessions.fetch_add(1, Ordering::SeqCst);
+    let _count = LiveCount(s.clone());
+    let note = |v: serde_json::Value| Message::Text(v.to_string().into());
+    let engine = s.engine.clone();
+    let tracker = match tokio::task::spawn_blocking(move || engine.tracker()).await {
+        Ok(Ok(t)) => t,
+        Ok(Err(e)) => {
+            let _ = socket
+                .send(note(serde_json::json!({"error": one_line(&e)})))
+                .await;
+            return;
+        }
+        Err(_) => return,
+    };
+    let live = Arc::new(std::sync::Mutex::new(gagavatar_avatar::LiveTracker::new(
+        tracker,
+    )));
+    let max_pixels = s.cfg.max_pixels;
+    while let Some(Ok(msg)) = socket.recv().await {
+        let bytes = match msg {
+            Message::Binary(b) => b,
+            Message::Close(_) => break,
+            _ => continue,
+        };
+        let lt = live.clone();
+        let tracked = tokio::task::spawn_blocking(move || -> Result<Option<_>, String> {
+            let reader = image::ImageReader::new(Cursor::new(&bytes[..]))
+                .with_guessed_format()
+                .map_err(|e| e.to_string())?;
+            let (w, h) = reader
+                .into_dimensions()
+                .map_err(|_| "a live frame must be a JPEG or PNG image".to_string())?;
+            if (w as u64) * (h as u64) > max_pixels {
+                return Err(format!("a live frame of {w}x{h} is too large"));
+            }
+            let img = image::load_from_memory(&bytes)
+                .map_err(|e| format!("cannot decode a live frame: {e}"))?
+                .to_rgb8();
+            lt.lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .frame(&img)
+                .map_err(|e| one_line(&e))
+        })
+        .await;
+        let answer = match tracked {
+            Err(_) => break,
+            Ok(Err(e)) => note(serde_json::json!({ "error": e })),
+            Ok(Ok(None)) => note(serde_json::json!({ "face": false })),
+            Ok(Ok(Some(rec))) => match live_frame(&s, &st, &rec).await {
+                Ok(jpeg) => Message::Binary(jpeg.into()),
+                Err(e) => note(serde_json::json!({ "error": e.message })),
+            },
+        };
+        if socket.send(answer).await.is_err() {
+            break;
+        }
+    }
+}
+
+/// The avatar with a live record's codes and camera, as a labelled JPEG.
+async fn live_frame(
+    s: &AppState,
+    st: &Stored,
+    rec: &gagavatar_flame::TrackedFrame,
+) -> ApiResult<Vec<u8>> {
+    let codes = st
+        .avatar
+        .codes(rec, "a live frame")
+        .map_err(|e| ApiError::internal(one_line(&e)))?;
+    let camera = rec
+        .transform_matrix
+        .ok_or_else(|| ApiError::internal("a live record has no camera"))?;
+    let (tx, rx) = oneshot::channel();
+    s.batcher
+        .submit(
+            RenderJob {
+                avatar: st.avatar.clone(),
+                codes,
+                camera,
+                reply: tx,
+                queued: Instant::now(),
+            },
+            false,
+        )
+        .map_err(|_| ApiError::busy("the render queue is full", 1))?;
+    let frame = rx
+        .await
+        .map_err(|_| ApiError::internal("the renderer stopped"))?
+        .map_err(ApiError::internal)?;
+    let size = st.avatar.image_size();
+    tokio::task::spawn_blocking(move || encode(frame, size, true, true))
+        .await
+        .map_err(|_| ApiError::internal("the encoder stopped"))?
 }

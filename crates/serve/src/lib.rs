@@ -54,6 +54,8 @@ pub struct ServeConfig {
     pub max_jobs: usize,
     /// Photos being tracked or waiting for it; more get 503.
     pub max_pending_avatars: usize,
+    /// Live (webcam) sessions at once; more get 429.
+    pub max_live: usize,
     /// What the health answer says about where frames are rendered.
     pub device: String,
 }
@@ -74,6 +76,7 @@ impl Default for ServeConfig {
             max_video_frames: 1800,
             max_jobs: 2,
             max_pending_avatars: 4,
+            max_live: 4,
             device: "cpu".into(),
         }
     }
@@ -89,6 +92,8 @@ pub struct AppState {
     pub jobs: Mutex<HashMap<String, Arc<jobs::Job>>>,
     /// Photos being tracked or waiting to be.
     pub pending_avatars: AtomicUsize,
+    /// Live sessions open.
+    pub live_sessions: AtomicUsize,
     /// One reconstruction at a time (they use every core).
     pub compute: tokio::sync::Semaphore,
     /// Uploads, job results and exports, removed with the state.
@@ -115,6 +120,7 @@ impl AppState {
             metrics,
             jobs: Mutex::new(HashMap::new()),
             pending_avatars: AtomicUsize::new(0),
+            live_sessions: AtomicUsize::new(0),
             compute: tokio::sync::Semaphore::new(1),
             scratch,
         }))

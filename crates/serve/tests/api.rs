@@ -541,3 +541,52 @@ fn a_video_is_reenacted_as_a_job_with_progress_and_limits() {
     assert_error(&busy, 429, "already reenacting");
     assert_eq!(busy.header("retry-after"), Some("10"));
 }
+
+#[test]
+fn a_webcam_stream_drives_the_avatar_over_a_websocket() {
+    use tungstenite::Message;
+    set_cache();
+    let s = Server::start(ServeConfig::default());
+    let id = s.create(&astronaut());
+    let (mut ws, _) =
+        tungstenite::connect(format!("ws://{}/v1/avatars/{id}/live", s.addr)).unwrap();
+    let photo = image::open(demo().join("astronaut.jpg")).unwrap().to_rgb8();
+    let mut frames = Vec::new();
+    for i in 0..4u32 {
+        let view = image::imageops::crop_imm(&photo, 80 + 6 * i, 0, 300, 300).to_image();
+        let mut jpeg = Vec::new();
+        view.write_to(
+            &mut std::io::Cursor::new(&mut jpeg),
+            image::ImageFormat::Jpeg,
+        )
+        .unwrap();
+        ws.send(Message::Binary(jpeg.into())).unwrap();
+        match ws.read().unwrap() {
+            Message::Binary(b) => frames.push(image::load_from_memory(&b).unwrap().to_rgb8()),
+            other => panic!("frame {i}: {other:?}"),
+        }
+    }
+    assert!(frames.iter().all(|f| f.dimensions() == (64, 64)));
+    assert_ne!(
+        frames[0].as_raw(),
+        frames[3].as_raw(),
+        "the head moved, the avatar did not"
+    );
+    // A frame without a face and one that is not an image: a note each, and the session goes on.
+    let mut wall = Vec::new();
+    image::RgbImage::from_pixel(160, 120, image::Rgb([90, 90, 90]))
+        .write_to(
+            &mut std::io::Cursor::new(&mut wall),
+            image::ImageFormat::Png,
+        )
+        .unwrap();
+    ws.send(Message::Binary(wall.into())).unwrap();
+    let note = ws.read().unwrap().into_text().unwrap();
+    assert!(note.contains("\"face\":false"), "{note}");
+    ws.send(Message::Binary(b"garbage".to_vec().into()))
+        .unwrap();
+    let note = ws.read().unwrap().into_text().unwrap();
+    assert!(note.contains("error"), "{note}");
+    ws.close(None).unwrap();
+    assert_eq!(s.metric("gagavatar_render_frames_total"), 4.0);
+}

@@ -206,7 +206,73 @@ async function reenact(file) {
   }
 }
 
+// Live driving: camera frames go to the server over a WebSocket, one at a time; each answer is
+// the avatar with the expression, jaw, eyes and head pose tracked in that frame.
+let cam = null;
+
+function stopWebcam() {
+  if (!cam) return;
+  const c = cam;
+  cam = null;
+  c.stream.getTracks().forEach((t) => t.stop());
+  if (c.ws.readyState <= 1) c.ws.close();
+  $("cam").hidden = true;
+  $("webcam").textContent = "Drive with my webcam";
+  $("live-status").textContent = "";
+}
+
+async function startWebcam() {
+  showError("");
+  if (!state.id) return;
+  let stream;
+  try {
+    stream = await navigator.mediaDevices.getUserMedia({ video: { width: 640, height: 480 } });
+  } catch (e) {
+    showError("cannot open the webcam: " + e.message);
+    return;
+  }
+  const video = $("cam");
+  video.srcObject = stream;
+  video.hidden = false;
+  await video.play().catch(() => {});
+  const proto = location.protocol === "https:" ? "wss:" : "ws:";
+  const ws = new WebSocket(authed(proto + "//" + location.host + "/v1/avatars/" + state.id + "/live"));
+  ws.binaryType = "blob";
+  cam = { stream, ws };
+  $("webcam").textContent = "Stop the webcam";
+  $("live-status").textContent = "starting…";
+  const canvas = document.createElement("canvas");
+  const send = () => {
+    if (!cam || ws.readyState !== 1 || !video.videoWidth) {
+      if (cam && ws.readyState === 1) setTimeout(send, 50);
+      return;
+    }
+    canvas.width = video.videoWidth;
+    canvas.height = video.videoHeight;
+    canvas.getContext("2d").drawImage(video, 0, 0);
+    canvas.toBlob((b) => { if (cam && ws.readyState === 1 && b) ws.send(b); }, "image/jpeg", 0.85);
+  };
+  ws.onopen = send;
+  ws.onmessage = (ev) => {
+    if (typeof ev.data === "string") {
+      const m = JSON.parse(ev.data);
+      $("live-status").textContent = m.error ? m.error : "no face in the camera";
+    } else {
+      const img = $("frame");
+      const url = URL.createObjectURL(ev.data);
+      img.onload = () => URL.revokeObjectURL(url);
+      img.src = url;
+      img.dataset.live = String(1 + parseInt(img.dataset.live || "0", 10));
+      $("live-status").textContent = "live";
+    }
+    send();
+  };
+  ws.onerror = () => showError("the live connection failed");
+  ws.onclose = () => stopWebcam();
+}
+
 setupDrop();
 setupView();
+$("webcam").addEventListener("click", () => (cam ? stopWebcam() : startWebcam()));
 $("video-file").addEventListener("change", (e) => reenact(e.target.files[0]));
 health();

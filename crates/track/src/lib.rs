@@ -42,6 +42,6 @@ pub use error::{Result, TrackError};
 pub use fit::{FitOptions, FrameFit};
 pub use observation::{FaceLandmarks, Observation};
 pub use pipeline::{
-    track_photo, track_video, FrameTrack, TrackOptions, TrackedPhoto, TrackedVideo,
+    track_photo, track_video, FrameTrack, LiveTrack, TrackOptions, TrackedPhoto, TrackedVideo,
 };
 pub use rig::{FaceCodes, LandmarkRig};

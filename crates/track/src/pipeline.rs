@@ -387,3 +387,70 @@ fn consistent_states(
         })
         .collect()
 }
+
+/// Tracks frames one at a time as they arrive (a webcam), where a video's two-sided smoothing
+/// cannot wait for the clip's end: the first frame with a face fixes the shape (a photo fit);
+/// each later frame is fitted warm-started from the one before, through a crop window whose
+/// head box follows an exponential moving average (so the window does not shake).
+#[derive(Debug, Clone, Default)]
+pub struct LiveTrack {
+    shape: Option<Vec<f64>>,
+    prev: Option<FrameState>,
+    head: Option<HeadBox>,
+}
+
+/// How much of a new frame's head box the live window takes (the rest is the previous one):
+/// about an 8-frame memory.
+pub const LIVE_HEAD_SMOOTHING: f64 = 0.25;
+
+impl LiveTrack {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// The record of the next frame, or `None` when it has no face (the caller keeps showing
+    /// the last one).
+    pub fn frame(
+        &mut self,
+        obs: &Observation,
+        rig: &LandmarkRig,
+        opts: &TrackOptions,
+    ) -> Result<Option<TrackedFrame>> {
+        let Some(lm) = &obs.landmarks else {
+            return Ok(None);
+        };
+        let seen = opts.framing.head_box(lm)?;
+        let head = match &self.head {
+            None => seen,
+            Some(h) => {
+                let a = LIVE_HEAD_SMOOTHING;
+                let mix = |p: f64, q: f64| (1.0 - a) * p + a * q;
+                HeadBox::new(
+                    mix(h.x0, seen.x0),
+                    mix(h.y0, seen.y0),
+                    mix(h.x1, seen.x1),
+                    mix(h.y1, seen.y1),
+                )?
+            }
+        };
+        let window = CropWindow::from_head_box(&head)?;
+        let Some((targets, _)) = targets_in_crop(obs, &window, &opts.fit)? else {
+            return Ok(None);
+        };
+        let (shape, state) = match &self.shape {
+            None => {
+                let fit = fit_photo(rig, &targets, &opts.fit)?;
+                (fit.shape, fit.frame.state)
+            }
+            Some(shape) => {
+                let fit = fit_frame(rig, shape, &targets, self.prev.as_ref(), &opts.fit)?;
+                (shape.clone(), fit.state)
+            }
+        };
+        let record = record_of(&shape, &state, window.normalized_box(&seen));
+        self.shape = Some(shape);
+        self.prev = Some(state);
+        self.head = Some(head);
+        Ok(Some(record))
+    }
+}

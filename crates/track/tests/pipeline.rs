@@ -195,3 +195,81 @@ fn video_is_steady_and_fills_frames_without_a_face() {
         );
     }
 }
+
+/// The records' fitted landmarks in frame pixels, through the record's own crop window.
+fn live_fit_rms(
+    rig: &LandmarkRig,
+    rec: &gagavatar_flame::TrackedFrame,
+    want: &[[f64; 2]; N_LANDMARKS],
+    window: &CropWindow,
+) -> f64 {
+    let state = FrameState {
+        expression: rec.expcode[..rig.n_exp].to_vec(),
+        jaw: [rec.posecode[3], rec.posecode[4], rec.posecode[5]],
+        eyes: std::array::from_fn(|k| rec.eyecode[k]),
+        camera: CameraPose::from_matrix(&rec.transform_matrix.unwrap()),
+    };
+    let pts = exact_points(rig, &rec.shapecode[..rig.n_shape], &state);
+    let d: f64 = pts
+        .iter()
+        .zip(want)
+        .map(|(p, w)| dist(window.crop_to_frame(*p), *w).powi(2))
+        .sum();
+    (d / N_LANDMARKS as f64).sqrt()
+}
+
+#[test]
+fn live_tracking_follows_a_head_frame_by_frame() {
+    let rig = rig();
+    let n = 12;
+    let (shape, states) = sequence(&rig, n);
+    let opts = TrackOptions::default();
+    let mut live = gagavatar_track::LiveTrack::new();
+    let mut first_shape = None;
+    for (i, s) in states.iter().enumerate() {
+        let pts = frame_points(&rig, &shape, s);
+        let obs = if i == 5 {
+            Observation::no_face(W, H).unwrap()
+        } else {
+            observation(&pts, W, H)
+        };
+        let rec = live.frame(&obs, &rig, &opts).unwrap();
+        if i == 5 {
+            assert!(rec.is_none(), "a frame without a face gave a record");
+            continue;
+        }
+        let rec = rec.unwrap();
+        // One shape for the whole stream, fixed by the first frame.
+        let sc = rec.shapecode.clone();
+        assert_eq!(
+            first_shape.get_or_insert(sc.clone()),
+            &sc,
+            "frame {i}: the shape changed"
+        );
+        // The fit reproduces the frame's landmarks through the window its box came from.
+        let b = rec.bbox.unwrap();
+        assert!(b.iter().all(|v| v.is_finite()), "frame {i}: bbox {b:?}");
+        let window = {
+            // The record's box is the frame's head box in the crop's normalised coordinates:
+            // recover the window from it and the frame's own head box.
+            let head = opts
+                .framing
+                .head_box(obs.landmarks.as_ref().unwrap())
+                .unwrap();
+            let side = (head.x1 - head.x0) / (b[2] - b[0]);
+            let x0 = head.x0 - b[0] * side;
+            let y0 = head.y0 - b[1] * side;
+            CropWindow {
+                x0: x0.round() as i64,
+                y0: y0.round() as i64,
+                x1: (x0 + side).round() as i64,
+                y1: (y0 + side).round() as i64,
+            }
+        };
+        let rms = live_fit_rms(&rig, &rec, &pts, &window);
+        assert!(
+            rms < 3.0,
+            "frame {i}: the live fit is {rms:.2} px RMS off its landmarks"
+        );
+    }
+}
