@@ -590,3 +590,33 @@ fn a_webcam_stream_drives_the_avatar_over_a_websocket() {
     ws.close(None).unwrap();
     assert_eq!(s.metric("gagavatar_render_frames_total"), 4.0);
 }
+
+#[test]
+fn thirty_two_clients_are_all_answered_correctly_with_and_without_batching() {
+    use gagavatar_serve::loadtest::{run, LoadConfig};
+    set_cache();
+    let e = engine();
+    let photos = [astronaut()];
+    let mut calls = Vec::new();
+    for max_batch in [1, 8] {
+        let cfg = LoadConfig {
+            clients: 32,
+            requests_per_client: 2,
+            batch: BatchConfig {
+                max_batch,
+                window: Duration::from_millis(if max_batch == 1 { 0 } else { 4 }),
+                max_queue: 64,
+            },
+        };
+        let r = run(e.clone(), &photos, &cfg).unwrap();
+        assert_eq!((r.frames, r.wrong), (64, 0), "max batch {max_batch}");
+        assert!(r.p99_ms >= r.p50_ms && r.p50_ms > 0.0);
+        calls.push(r.batches);
+    }
+    assert_eq!(calls[0], 64, "one request at a time is one call a frame");
+    assert!(
+        calls[1] < 64,
+        "32 concurrent clients were never batched ({} calls)",
+        calls[1]
+    );
+}
