@@ -29,17 +29,7 @@ create_exception!(
     "Every failure of the package: one line, as the CLI prints it."
 );
 
-/// The error and its causes on one line (`a: b: c`), as the CLI prints them.
-fn one_line(e: &(dyn std::error::Error + 'static)) -> String {
-    let mut s = e.to_string();
-    let mut cause = e.source();
-    while let Some(c) = cause {
-        s.push_str(": ");
-        s.push_str(&c.to_string());
-        cause = c.source();
-    }
-    s
-}
+use gagavatar_avatar::one_line;
 
 fn to_py(e: impl std::error::Error + 'static) -> PyErr {
     Error::new_err(one_line(&e))

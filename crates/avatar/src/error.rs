@@ -86,3 +86,16 @@ pub(crate) fn io_err(
     let path = path.to_owned();
     move |source| AvatarError::Io { what, path, source }
 }
+
+/// An error and its causes on one line (`a: b: c`), as the CLI prints them: what the Python
+/// package raises and the server answers.
+pub fn one_line(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut s = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        s.push_str(": ");
+        s.push_str(&c.to_string());
+        cause = c.source();
+    }
+    s
+}

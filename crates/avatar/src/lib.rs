@@ -43,7 +43,7 @@ pub use engine::{
     flame_mismatch, load_flame, synthetic_fingerprint, Engine, EngineConfig, FlameSource,
     SYNTHETIC_FLAME,
 };
-pub use error::{AvatarError, Result};
+pub use error::{one_line, AvatarError, Result};
 pub use gagavatar_gpu::flame::FrameCodes;
 pub use many::render_many;
 pub use monitor::{CancelToken, Monitor, NoMonitor};

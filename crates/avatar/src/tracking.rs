@@ -348,6 +348,11 @@ impl Tracker {
                 (v, thread_cpu_seconds() - c0)
             });
             let mut fit = Some(fit);
+            // Stops the writer; the real error is kept beside it and returned instead.
+            let stopped = || TrackError::Output {
+                path: dir.to_owned(),
+                reason: "stopped".into(),
+            };
             let mut fit_cpu = 0.0;
             let mut failure: Option<AvatarError> = None;
             let frames = VideoReader::open(path, &ReadOptions::default())?;
@@ -368,11 +373,7 @@ impl Tracker {
                 monitor.advance(1);
                 jpeg.map_err(|e| {
                     failure = Some(e);
-                    // Stops the writer; the real error is `failure`.
-                    TrackError::Output {
-                        path: dir.to_owned(),
-                        reason: "stopped".into(),
-                    }
+                    stopped()
                 })
             });
             let mut fit_failure: Option<AvatarError> = None;
@@ -398,10 +399,7 @@ impl Tracker {
                         "internal",
                         format!("frame {i}'s crop window differs between the crop and the fit"),
                     ));
-                    return Err(TrackError::Output {
-                        path: dir.to_owned(),
-                        reason: "stopped".into(),
-                    });
+                    return Err(stopped());
                 }
                 Ok(v)
             });

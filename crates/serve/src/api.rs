@@ -566,6 +566,22 @@ async fn render(
             orbit_transform(&base, yaw.to_radians(), pitch.to_radians())
         }
     };
+    let watermark = req.watermark.unwrap_or(true);
+    let encoded = render_encoded(&s, avatar, codes, camera, watermark, jpeg).await?;
+    let kind = if jpeg { "image/jpeg" } else { "image/png" };
+    Ok(([(header::CONTENT_TYPE, kind)], encoded).into_response())
+}
+
+/// One frame through the shared batcher, encoded (PNG or JPEG, with or without the label).
+/// Dropping the future (the client went away) tells the batcher to skip the frame.
+async fn render_encoded(
+    s: &AppState,
+    avatar: &Arc<gagavatar_avatar::Avatar>,
+    codes: gagavatar_avatar::FrameCodes,
+    camera: gagavatar_avatar::Camera,
+    watermark: bool,
+    jpeg: bool,
+) -> ApiResult<Vec<u8>> {
     let (tx, rx) = oneshot::channel();
     s.batcher
         .submit(
@@ -579,18 +595,14 @@ async fn render(
             false,
         )
         .map_err(|_| ApiError::busy("the render queue is full; try again in a moment", 1))?;
-    // Dropping `rx` (the client went away) tells the batcher to skip the frame.
     let frame = rx
         .await
         .map_err(|_| ApiError::internal("the renderer stopped"))?
         .map_err(ApiError::internal)?;
     let size = avatar.image_size();
-    let watermark = req.watermark.unwrap_or(true);
-    let encoded = tokio::task::spawn_blocking(move || encode(frame, size, watermark, jpeg))
+    tokio::task::spawn_blocking(move || encode(frame, size, watermark, jpeg))
         .await
-        .map_err(|_| ApiError::internal("the encoder stopped"))??;
-    let kind = if jpeg { "image/jpeg" } else { "image/png" };
-    Ok(([(header::CONTENT_TYPE, kind)], encoded).into_response())
+        .map_err(|_| ApiError::internal("the encoder stopped"))?
 }
 
 fn encode(mut rgb: Vec<u8>, size: usize, watermark: bool, jpeg: bool) -> ApiResult<Vec<u8>> {
@@ -874,25 +886,5 @@ async fn live_frame(
     let camera = rec
         .transform_matrix
         .ok_or_else(|| ApiError::internal("a live record has no camera"))?;
-    let (tx, rx) = oneshot::channel();
-    s.batcher
-        .submit(
-            RenderJob {
-                avatar: st.avatar.clone(),
-                codes,
-                camera,
-                reply: tx,
-                queued: Instant::now(),
-            },
-            false,
-        )
-        .map_err(|_| ApiError::busy("the render queue is full", 1))?;
-    let frame = rx
-        .await
-        .map_err(|_| ApiError::internal("the renderer stopped"))?
-        .map_err(ApiError::internal)?;
-    let size = st.avatar.image_size();
-    tokio::task::spawn_blocking(move || encode(frame, size, true, true))
-        .await
-        .map_err(|_| ApiError::internal("the encoder stopped"))?
+    render_encoded(s, &st.avatar, codes, camera, true, true).await
 }

@@ -52,17 +52,7 @@ impl ApiError {
     }
 }
 
-/// The error and its causes on one line (`a: b: c`), as the CLI prints them.
-pub fn one_line(e: &(dyn std::error::Error + 'static)) -> String {
-    let mut s = e.to_string();
-    let mut cause = e.source();
-    while let Some(c) = cause {
-        s.push_str(": ");
-        s.push_str(&c.to_string());
-        cause = c.source();
-    }
-    s
-}
+pub use gagavatar_avatar::one_line;
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
