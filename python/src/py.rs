@@ -68,7 +68,10 @@ fn frames_array<'py>(
     size: usize,
 ) -> PyResult<Bound<'py, PyAny>> {
     let n = frames.len();
-    let flat: Vec<u8> = frames.into_iter().flatten().collect();
+    let mut flat: Vec<u8> = Vec::with_capacity(n * size * size * 3);
+    for f in &frames {
+        flat.extend_from_slice(f);
+    }
     let arr = PyArray1::from_vec(py, flat).reshape([n, size, size, 3])?;
     Ok(arr.into_any())
 }
