@@ -1,0 +1,587 @@
+//! The ViT's inference kernels (DINOv2 in `gagavatar-net`), fused and without a backward: a
+//! two-pass layer norm, blocked attention, exact-erf GELU and an in-place row softmax. The row
+//! kernels are compiled for AVX-512 and AVX2 when the CPU has them, with the same arithmetic in
+//! every version (`rows`), so results do not depend on the CPU. Callers keep differentiable
+//! fallbacks for values that track gradients.
+
+use candle_core::{
+    backend::BackendStorage, bail, CpuStorage, CustomOp1, CustomOp3, InplaceOp1, Layout, Result,
+    Shape, Tensor,
+};
+use rayon::prelude::*;
+
+/// Layer norm over the last dim of `x` with `weight` and `bias` (f32 or f64), two-pass.
+pub fn layer_norm(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<Tensor> {
+    x.contiguous()?
+        .apply_op3_no_bwd(weight, bias, &LayerNormOp { eps })
+}
+
+/// `softmax(q k^T) v` over contiguous f32 `[heads, N, d]` (q already scaled); see
+/// [`ATTN_ROWS`].
+pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
+    q.apply_op3_no_bwd(k, v, &AttentionOp)
+}
+
+/// Exact (erf) GELU, `x (1 + erf(x / sqrt 2)) / 2`, f32 or f64.
+pub fn gelu_erf(x: &Tensor) -> Result<Tensor> {
+    x.contiguous()?.apply_op1_no_bwd(&GeluErfOp)
+}
+
+/// Row-wise layer norm over the last dim with a two-pass (mean, then centred variance) reduction:
+/// candle's fused op uses `E[x^2] - E[x]^2` in f32, which cancels badly on the large-magnitude
+/// channels of the DINOv2 residual stream.
+struct LayerNormOp {
+    eps: f64,
+}
+
+fn contiguous_slice<'a, T>(x: &'a [T], l: &Layout, what: &str) -> Result<&'a [T]> {
+    match l.contiguous_offsets() {
+        Some((a, b)) => Ok(&x[a..b]),
+        None => bail!("{what}: operand must be contiguous"),
+    }
+}
+
+impl LayerNormOp {
+    fn check(&self, lx: &Layout, w: usize, b: usize) -> Result<usize> {
+        let n = lx.dims().last().copied().unwrap_or(0);
+        if n == 0 || w != n || b != n {
+            bail!(
+                "layer norm: input {:?} does not match weight [{w}] / bias [{b}]",
+                lx.dims()
+            );
+        }
+        Ok(n)
+    }
+}
+
+impl CustomOp3 for LayerNormOp {
+    fn name(&self) -> &'static str {
+        "vit-layer-norm"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        const WHAT: &str = "layer norm";
+        let storage = match (s1, s2, s3) {
+            (CpuStorage::F32(x), CpuStorage::F32(w), CpuStorage::F32(b)) => {
+                let x = contiguous_slice(x, l1, WHAT)?;
+                let w = contiguous_slice(w, l2, WHAT)?;
+                let b = contiguous_slice(b, l3, WHAT)?;
+                let n = self.check(l1, w.len(), b.len())?;
+                let mut out = vec![0f32; x.len()];
+                let eps = self.eps as f32;
+                par_rows(x, &mut out, n, |x, o| rows::layer_norm(x, o, n, w, b, eps));
+                CpuStorage::F32(out)
+            }
+            (CpuStorage::F64(x), CpuStorage::F64(w), CpuStorage::F64(b)) => {
+                let x = contiguous_slice(x, l1, WHAT)?;
+                let w = contiguous_slice(w, l2, WHAT)?;
+                let b = contiguous_slice(b, l3, WHAT)?;
+                let n = self.check(l1, w.len(), b.len())?;
+                let mut out = vec![0f64; x.len()];
+                par_rows(x, &mut out, n, |x, o| {
+                    for (x, o) in x.chunks_exact(n).zip(o.chunks_exact_mut(n)) {
+                        let mean = x.iter().sum::<f64>() / n as f64;
+                        let var = x.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / n as f64;
+                        let inv = 1.0 / (var + self.eps).sqrt();
+                        for (((o, v), w), b) in o.iter_mut().zip(x).zip(w).zip(b) {
+                            *o = (v - mean) * inv * w + b;
+                        }
+                    }
+                });
+                CpuStorage::F64(out)
+            }
+            _ => bail!(
+                "layer norm supports f32 or f64 operands of one dtype, got {:?}",
+                s1.dtype()
+            ),
+        };
+        Ok((storage, l1.shape().clone()))
+    }
+}
+
+/// Query rows per block of the fused attention: one block's logits (128 x 1370 f32, 700 KiB at
+/// the release size) stay in the core's L2 cache from the first GEMM through the softmax to the
+/// second. Whole-head logits (7.3 MiB) live in L3, where the softmax alone took a third of the
+/// attention time.
+pub const ATTN_ROWS: usize = 128;
+
+/// Inference attention `softmax(q k^T) v` over contiguous f32 `[heads, N, d]` (q already
+/// scaled), heads in parallel and each head in blocks of [`ATTN_ROWS`] query rows: single-thread
+/// GEMMs on an L2-resident logits block and the in-place row softmax between them.
+struct AttentionOp;
+
+impl CustomOp3 for AttentionOp {
+    fn name(&self) -> &'static str {
+        "vit-attention"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (CpuStorage::F32(q), CpuStorage::F32(k), CpuStorage::F32(v)) = (s1, s2, s3) else {
+            bail!("attention: the fused kernel runs in f32");
+        };
+        let (heads, n, d) = l1.shape().dims3()?;
+        if l2.shape() != l1.shape() || l3.shape() != l1.shape() {
+            bail!(
+                "attention: q {:?}, k {:?} and v {:?} must share one shape",
+                l1.dims(),
+                l2.dims(),
+                l3.dims()
+            );
+        }
+        let q = contiguous_slice(q, l1, "attention q")?;
+        let k = contiguous_slice(k, l2, "attention k")?;
+        let v = contiguous_slice(v, l3, "attention v")?;
+        let mut out = vec![0f32; heads * n * d];
+        if n == 0 || d == 0 {
+            return Ok((CpuStorage::F32(out), l1.shape().clone()));
+        }
+        let rows = ATTN_ROWS.min(n);
+        out.par_chunks_mut(n * d).enumerate().for_each_init(
+            || vec![0f32; rows * n],
+            |logits, (h, out_h)| {
+                let (qh, kh, vh) = (
+                    &q[h * n * d..(h + 1) * n * d],
+                    &k[h * n * d..(h + 1) * n * d],
+                    &v[h * n * d..(h + 1) * n * d],
+                );
+                for (b, out_b) in out_h.chunks_mut(rows * d).enumerate() {
+                    let r = out_b.len() / d;
+                    let lg = &mut logits[..r * n];
+                    // SAFETY: every operand is a live slice covering the extents given (q block
+                    // r x d, k read as its transpose d x n, logits r x n, v n x d, out r x d);
+                    // the destinations do not alias the sources.
+                    unsafe {
+                        gemm::gemm(
+                            r,
+                            n,
+                            d,
+                            lg.as_mut_ptr(),
+                            1,
+                            n as isize,
+                            false,
+                            qh[b * rows * d..].as_ptr(),
+                            1,
+                            d as isize,
+                            kh.as_ptr(),
+                            d as isize,
+                            1,
+                            0.0,
+                            1.0,
+                            false,
+                            false,
+                            false,
+                            gemm::Parallelism::None,
+                        );
+                    }
+                    rows::softmax(lg, n);
+                    // SAFETY: as above.
+                    unsafe {
+                        gemm::gemm(
+                            r,
+                            d,
+                            n,
+                            out_b.as_mut_ptr(),
+                            1,
+                            d as isize,
+                            false,
+                            lg.as_ptr(),
+                            1,
+                            n as isize,
+                            vh.as_ptr(),
+                            1,
+                            d as isize,
+                            0.0,
+                            1.0,
+                            false,
+                            false,
+                            false,
+                            gemm::Parallelism::None,
+                        );
+                    }
+                }
+            },
+        );
+        Ok((CpuStorage::F32(out), l1.shape().clone()))
+    }
+}
+
+struct GeluErfOp;
+
+impl CustomOp1 for GeluErfOp {
+    fn name(&self) -> &'static str {
+        "vit-gelu-erf"
+    }
+
+    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+        let storage = match s {
+            CpuStorage::F32(x) => {
+                let x = contiguous_slice(x, l, "gelu")?;
+                let mut out = vec![0f32; x.len()];
+                par_rows(x, &mut out, 1, rows::gelu_erf);
+                CpuStorage::F32(out)
+            }
+            CpuStorage::F64(x) => {
+                let x = contiguous_slice(x, l, "gelu")?;
+                let mut out = vec![0f64; x.len()];
+                par_rows(x, &mut out, 1, |x, o| {
+                    for (o, &v) in o.iter_mut().zip(x) {
+                        let e = candle_core::cpu::erf::erf_f64(v * std::f64::consts::FRAC_1_SQRT_2);
+                        *o = 0.5 * v * (1.0 + e);
+                    }
+                });
+                CpuStorage::F64(out)
+            }
+            _ => bail!("gelu supports f32 and f64, got {:?}", s.dtype()),
+        };
+        Ok((storage, l.shape().clone()))
+    }
+}
+
+/// Softmax over the last dim (the attention rows), in place: the logits are a fresh tensor
+/// nobody else holds, and a second [B H, N, N] buffer would be the largest allocation
+/// of the ViT.
+pub fn softmax_in_place(x: &Tensor) -> Result<()> {
+    if !x.is_contiguous() {
+        bail!("softmax: logits must be contiguous");
+    }
+    x.inplace_op1(&SoftmaxOp)
+}
+
+struct SoftmaxOp;
+
+impl InplaceOp1 for SoftmaxOp {
+    fn name(&self) -> &'static str {
+        "vit-softmax"
+    }
+
+    fn cpu_fwd(&self, s: &mut CpuStorage, l: &Layout) -> Result<()> {
+        let n = l.dims().last().copied().unwrap_or(0);
+        let Some((o0, o1)) = l.contiguous_offsets() else {
+            bail!("softmax: logits must be contiguous");
+        };
+        if n == 0 {
+            bail!("softmax of an empty row: {:?}", l.dims());
+        }
+        let block = n * (16_384 / n).max(1);
+        match s {
+            CpuStorage::F32(x) => x[o0..o1]
+                .par_chunks_mut(block)
+                .for_each(|x| rows::softmax(x, n)),
+            CpuStorage::F64(x) => x[o0..o1].par_chunks_mut(block).for_each(|x| {
+                for r in x.chunks_exact_mut(n) {
+                    let max = r.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                    r.iter_mut().for_each(|v| *v = (*v - max).exp());
+                    let sum: f64 = r.iter().sum();
+                    r.iter_mut().for_each(|v| *v /= sum);
+                }
+            }),
+            _ => bail!("softmax supports f32 and f64, got {:?}", s.dtype()),
+        }
+        Ok(())
+    }
+}
+
+/// Runs `f` on blocks of whole rows of `row` elements (about 16k values each) on the rayon pool.
+fn par_rows<T: Send + Sync>(
+    x: &[T],
+    out: &mut [T],
+    row: usize,
+    f: impl Fn(&[T], &mut [T]) + Send + Sync,
+) {
+    let block = row * (16_384 / row).max(1);
+    out.par_chunks_mut(block)
+        .zip(x.par_chunks(block))
+        .for_each(|(o, x)| f(x, o));
+}
+
+/// f32 row kernels for the ViT, compiled for AVX-512 or AVX2 when the CPU has them (same
+/// arithmetic in every version, so the results do not depend on the CPU).
+mod rows {
+    /// `exp` for `x <= 88`: Cody-Waite reduction by ln 2 and a degree-7 polynomial (Cephes'
+    /// `expf` coefficients), about 1 ulp; 0 below the f32 normal range.
+    #[inline(always)]
+    fn exp(x: f32) -> f32 {
+        const LN2_HI: f32 = 0.693_359_4;
+        const LN2_LO: f32 = -2.121_944_4e-4;
+        let n = (x * std::f32::consts::LOG2_E + 0.5).floor();
+        let r = x - n * LN2_HI - n * LN2_LO;
+        let p = ((((1.987_569_1e-4 * r + 1.398_2e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r
+            + 1.666_666_5e-1)
+            * r
+            + 0.5;
+        let y = p * (r * r) + r + 1.0;
+        // 2^n built in the exponent field. The biased exponent (an integer in 1..=254) is read
+        // from the mantissa of `e + 2^23` by a bit cast: a float-to-int `as` cast saturates and
+        // maps NaN, which compiles to per-lane scalar code and kept these loops from
+        // vectorising (the softmax took a third of the attention time).
+        const MANTISSA: f32 = 8_388_608.0;
+        let e = n.max(-126.0) + 127.0;
+        let scale = f32::from_bits((e + MANTISSA).to_bits().wrapping_sub(MANTISSA.to_bits()) << 23);
+        if x < -87.3 {
+            0.0
+        } else {
+            y * scale
+        }
+    }
+
+    /// Sum with 16 independent accumulators, so the loop vectorises.
+    #[inline(always)]
+    fn sum(x: &[f32]) -> f32 {
+        let mut acc = [0f32; 16];
+        let chunks = x.chunks_exact(16);
+        let tail: f32 = chunks.remainder().iter().sum();
+        for c in chunks {
+            for (a, v) in acc.iter_mut().zip(c) {
+                *a += v;
+            }
+        }
+        acc.iter().sum::<f32>() + tail
+    }
+
+    #[inline(always)]
+    fn max(x: &[f32]) -> f32 {
+        let mut acc = [f32::NEG_INFINITY; 16];
+        let chunks = x.chunks_exact(16);
+        let tail = chunks
+            .remainder()
+            .iter()
+            .copied()
+            .fold(f32::NEG_INFINITY, f32::max);
+        for c in chunks {
+            for (a, &v) in acc.iter_mut().zip(c) {
+                *a = a.max(v);
+            }
+        }
+        acc.iter().copied().fold(tail, f32::max)
+    }
+
+    #[inline(always)]
+    fn softmax_body(x: &mut [f32], n: usize) {
+        for r in x.chunks_exact_mut(n) {
+            let m = max(r);
+            r.iter_mut().for_each(|v| *v = exp(*v - m));
+            let inv = 1.0 / sum(r);
+            r.iter_mut().for_each(|v| *v *= inv);
+        }
+    }
+
+    /// GELU with erf from Abramowitz & Stegun 7.1.26 (|error| < 1.5e-7, the formula PyTorch's
+    /// vectorised CPU `erf` uses): `erf(z) = 1 - t (a1 + t (a2 + ...)) exp(-z^2)`,
+    /// `t = 1 / (1 + p z)` for `z >= 0`, odd in `z`.
+    #[inline(always)]
+    fn gelu_body(x: &[f32], out: &mut [f32]) {
+        const P: f32 = 0.327_591_1;
+        const A: [f32; 5] = [
+            0.254_829_6,
+            -0.284_496_74,
+            1.421_413_8,
+            -1.453_152,
+            1.061_405_4,
+        ];
+        for (o, &v) in out.iter_mut().zip(x) {
+            let z = (v * std::f32::consts::FRAC_1_SQRT_2).abs();
+            let t = 1.0 / (1.0 + P * z);
+            let poly = t * (A[0] + t * (A[1] + t * (A[2] + t * (A[3] + t * A[4]))));
+            let erf_abs = 1.0 - poly * exp(-z * z);
+            let erf = if v < 0.0 { -erf_abs } else { erf_abs };
+            *o = 0.5 * v * (1.0 + erf);
+        }
+    }
+
+    #[inline(always)]
+    fn layer_norm_body(x: &[f32], out: &mut [f32], n: usize, w: &[f32], b: &[f32], eps: f32) {
+        for (x, o) in x.chunks_exact(n).zip(out.chunks_exact_mut(n)) {
+            let mean = sum(x) / n as f32;
+            for (o, &v) in o.iter_mut().zip(x) {
+                *o = v - mean;
+            }
+            let mut sq = [0f32; 16];
+            let chunks = o.chunks_exact(16);
+            let tail: f32 = chunks.remainder().iter().map(|d| d * d).sum();
+            for c in chunks {
+                for (a, d) in sq.iter_mut().zip(c) {
+                    *a += d * d;
+                }
+            }
+            let var = (sq.iter().sum::<f32>() + tail) / n as f32;
+            let inv = 1.0 / (var + eps).sqrt();
+            for ((o, w), b) in o.iter_mut().zip(w).zip(b) {
+                *o = *o * inv * w + b;
+            }
+        }
+    }
+
+    /// Defines `pub fn $name` calling `$body` through the widest instruction set available.
+    macro_rules! dispatch {
+        ($name:ident, $body:ident, ($($arg:ident: $ty:ty),*)) => {
+            pub(super) fn $name($($arg: $ty),*) {
+                #[cfg(target_arch = "x86_64")]
+                {
+                    #[target_feature(enable = "avx512f,avx2,fma")]
+                    unsafe fn avx512($($arg: $ty),*) {
+                        $body($($arg),*)
+                    }
+                    #[target_feature(enable = "avx2,fma")]
+                    unsafe fn avx2($($arg: $ty),*) {
+                        $body($($arg),*)
+                    }
+                    let avx2_fma = std::arch::is_x86_feature_detected!("avx2")
+                        && std::arch::is_x86_feature_detected!("fma");
+                    if avx2_fma && std::arch::is_x86_feature_detected!("avx512f") {
+                        // SAFETY: the CPU supports every feature the function is compiled for.
+                        return unsafe { avx512($($arg),*) };
+                    }
+                    if avx2_fma {
+                        // SAFETY: as above.
+                        return unsafe { avx2($($arg),*) };
+                    }
+                }
+                $body($($arg),*)
+            }
+        };
+    }
+
+    dispatch!(softmax, softmax_body, (x: &mut [f32], n: usize));
+    dispatch!(gelu_erf, gelu_body, (x: &[f32], out: &mut [f32]));
+    dispatch!(
+        layer_norm,
+        layer_norm_body,
+        (x: &[f32], out: &mut [f32], n: usize, w: &[f32], b: &[f32], eps: f32)
+    );
+
+    #[cfg(test)]
+    mod tests {
+        use super::*;
+
+        /// Deterministic values in [-1, 1) (a 64-bit LCG), so failures reproduce.
+        fn values(n: usize, seed: u64) -> Vec<f32> {
+            let mut s = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+            (0..n)
+                .map(|_| {
+                    s = s
+                        .wrapping_mul(6_364_136_223_846_793_005)
+                        .wrapping_add(1_442_695_040_888_963_407);
+                    ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+                })
+                .collect()
+        }
+
+        /// Polynomial `exp`: under 2 f32 ulps (8e-8 measured).
+        const EXP_REL_TOL: f64 = 2e-7;
+        /// GELU: A&S erf's 1.5e-7 absolute error times |x| / 2, plus f32 rounding.
+        const GELU_TOL: f64 = 3e-7;
+        /// Softmax and layer norm outputs: f32 rounding of O(1) values over rows of <= 1000.
+        const ROW_TOL: f64 = 2e-6;
+
+        #[test]
+        fn exp_matches_f64() {
+            let mut worst = (0f32, 0f64);
+            for i in 0..=200_000 {
+                let x = -87.0 + 97.0 * i as f32 / 200_000.0;
+                let want = (x as f64).exp();
+                let rel = ((exp(x) as f64 - want) / want).abs();
+                if rel > worst.1 {
+                    worst = (x, rel);
+                }
+            }
+            assert!(
+                worst.1 < EXP_REL_TOL,
+                "exp({}) relative error {:.2e}",
+                worst.0,
+                worst.1
+            );
+            assert_eq!(exp(-90.0), 0.0);
+            assert_eq!(exp(0.0), 1.0);
+        }
+
+        #[test]
+        fn gelu_matches_f64_erf() {
+            let x: Vec<f32> = (0..=40_000).map(|i| -10.0 + i as f32 / 2000.0).collect();
+            let mut out = vec![0f32; x.len()];
+            gelu_erf(&x, &mut out);
+            for (i, (&v, &o)) in x.iter().zip(&out).enumerate() {
+                let v = v as f64;
+                let want =
+                    0.5 * v * (1.0 + candle_core::cpu::erf::erf_f64(v / std::f64::consts::SQRT_2));
+                let tol = GELU_TOL * v.abs().max(1.0);
+                assert!(
+                    (o as f64 - want).abs() <= tol,
+                    "gelu index {i} (x = {v}): expected {want}, actual {o}"
+                );
+            }
+        }
+
+        #[test]
+        fn softmax_and_layer_norm_match_f64() {
+            // Rows of 16 + 7 and 1000 + 5 values (tails off the 16-lane chunks); the layer-norm
+            // rows sit on a mean of 300, where `E[x^2] - E[x]^2` in f32 would lose every digit.
+            for n in [23usize, 1005] {
+                let x: Vec<f32> = values(3 * n, n as u64).iter().map(|v| 8.0 * v).collect();
+                let mut sm = x.clone();
+                softmax(&mut sm, n);
+                let shifted: Vec<f32> = x.iter().map(|v| v + 300.0).collect();
+                let (w, b) = (values(n, 1), values(n, 2));
+                let mut ln = vec![0f32; x.len()];
+                layer_norm(&shifted, &mut ln, n, &w, &b, 1e-6);
+                for r in 0..3 {
+                    let row: Vec<f64> = x[r * n..(r + 1) * n].iter().map(|&v| v as f64).collect();
+                    let max = row.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                    let total: f64 = row.iter().map(|v| (v - max).exp()).sum();
+                    let mean = row.iter().sum::<f64>() / n as f64;
+                    let var = row.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n as f64;
+                    for j in 0..n {
+                        let i = r * n + j;
+                        let want = (row[j] - max).exp() / total;
+                        assert!(
+                            (sm[i] as f64 - want).abs() <= ROW_TOL,
+                            "softmax n={n} index {i}: expected {want}, actual {}",
+                            sm[i]
+                        );
+                        let want =
+                            (row[j] - mean) / (var + 1e-6).sqrt() * w[j] as f64 + b[j] as f64;
+                        assert!(
+                            (ln[i] as f64 - want).abs() <= ROW_TOL * 10.0,
+                            "layer norm n={n} index {i}: expected {want}, actual {}",
+                            ln[i]
+                        );
+                    }
+                }
+            }
+        }
+
+        /// The vectorised builds do the same operations in the same order as the portable one.
+        #[test]
+        fn dispatched_kernels_equal_the_portable_ones() {
+            let n = 777;
+            let x: Vec<f32> = values(4 * n, 9).iter().map(|v| 10.0 * v).collect();
+            let (w, b) = (values(n, 3), values(n, 4));
+            let (mut fast, mut slow) = (x.clone(), x.clone());
+            softmax(&mut fast, n);
+            softmax_body(&mut slow, n);
+            assert_eq!(fast, slow, "softmax");
+            let (mut fast, mut slow) = (vec![0f32; x.len()], vec![0f32; x.len()]);
+            gelu_erf(&x, &mut fast);
+            gelu_body(&x, &mut slow);
+            assert_eq!(fast, slow, "gelu");
+            layer_norm(&x, &mut fast, n, &w, &b, 1e-6);
+            layer_norm_body(&x, &mut slow, n, &w, &b, 1e-6);
+            assert_eq!(fast, slow, "layer norm");
+        }
+    }
+}
