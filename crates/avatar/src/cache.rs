@@ -49,7 +49,7 @@ pub struct Tracked {
     pub records: Vec<TrackedFrame>,
     /// A photo's 512 crop, as stored (matted, through its JPEG).
     pub crop: Option<RgbImage>,
-    /// The video's frame rate (25 for a photo).
+    /// The video's frame rate (`gagavatar_data::driver::DEFAULT_FPS` for a photo).
     pub fps: f64,
     /// Found in the cache: nothing was tracked.
     pub cached: bool,
@@ -218,8 +218,7 @@ pub fn track_input(
     };
     if let Some(mp) = &meta_path {
         if let Some(meta) = read_meta(mp).filter(|_| cached_folder_complete(&dir)) {
-            let mut t = read_tracked(&dir, meta.kind)?;
-            t.fps = meta.fps;
+            let mut t = read_folder(&dir, meta.kind, Some(meta.fps))?;
             t.seconds = t0.elapsed().as_secs_f64();
             return Ok(t);
         }
@@ -238,7 +237,7 @@ pub fn track_input(
                 names: vec![frame_key(&name, 0)],
                 records: vec![as_stored(p.record())],
                 crop: Some(p.crop),
-                fps: 25.0,
+                fps: gagavatar_data::driver::DEFAULT_FPS,
                 cached: false,
                 seconds: 0.0,
                 video: None,
@@ -284,6 +283,12 @@ pub fn track_input(
 /// Reads a tracked folder back: its records in frame order (a video's smoothed ones), and for
 /// a photo its crop.
 pub fn read_tracked(dir: &Path, kind: InputKind) -> Result<Tracked> {
+    read_folder(dir, kind, None)
+}
+
+/// [`read_tracked`]; `fps` when the caller knows it (a long video's `track.json` is large and
+/// read only for its rate otherwise).
+fn read_folder(dir: &Path, kind: InputKind, fps: Option<f64>) -> Result<Tracked> {
     let prefer = match kind {
         InputKind::Photo => [OPTIM_FILE, SMOOTHED_FILE],
         InputKind::Video => [SMOOTHED_FILE, OPTIM_FILE],
@@ -302,11 +307,12 @@ pub fn read_tracked(dir: &Path, kind: InputKind) -> Result<Tracked> {
         InputKind::Photo => Some(read_crop(dir, names.first().map_or("", String::as_str))?),
         InputKind::Video => None,
     };
-    let fps =
+    let fps = fps.unwrap_or_else(|| {
         gagavatar_track::output::read_track_json(&dir.join(gagavatar_track::output::TRACK_JSON))
             .ok()
             .and_then(|t| t.fps)
-            .unwrap_or(25.0);
+            .unwrap_or(gagavatar_data::driver::DEFAULT_FPS)
+    });
     Ok(Tracked {
         dir: dir.to_owned(),
         kind,

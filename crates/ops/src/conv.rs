@@ -7,6 +7,8 @@ pub use elem::{active_simd_level, limit_simd};
 mod geom;
 pub use geom::Conv2dSpec;
 use geom::Geom;
+
+use crate::storage::contiguous;
 mod im2col;
 #[cfg(target_arch = "x86_64")]
 mod wino_x86;
@@ -176,23 +178,22 @@ fn flip_transpose<T: elem::Elem>(w: &[T], g: &Geom) -> Vec<T> {
     out
 }
 
-fn contiguous<'a, T>(data: &'a [T], l: &Layout, what: &str) -> Result<&'a [T]> {
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&data[a..b]),
-        None => bail!("conv2d: {what} must be contiguous"),
-    }
-}
-
 /// Runs `f` on the contiguous f32 or f64 slices of two storages.
 macro_rules! with_float_slices {
     ($name:literal, ($a:expr, $la:expr), ($b:expr, $lb:expr), |$sa:ident, $sb:ident| $body:expr) => {
         match ($a, $b) {
             (CpuStorage::F32(a), CpuStorage::F32(b)) => {
-                let ($sa, $sb) = (contiguous(a, $la, $name)?, contiguous(b, $lb, $name)?);
+                let ($sa, $sb) = (
+                    contiguous(a, $la, "conv2d", $name)?,
+                    contiguous(b, $lb, "conv2d", $name)?,
+                );
                 CpuStorage::F32($body)
             }
             (CpuStorage::F64(a), CpuStorage::F64(b)) => {
-                let ($sa, $sb) = (contiguous(a, $la, $name)?, contiguous(b, $lb, $name)?);
+                let ($sa, $sb) = (
+                    contiguous(a, $la, "conv2d", $name)?,
+                    contiguous(b, $lb, "conv2d", $name)?,
+                );
                 CpuStorage::F64($body)
             }
             (a, b) => bail!(
@@ -293,17 +294,17 @@ impl CustomOp3 for ConvOp {
         let y = match (s1, s2, s3) {
             (CpuStorage::F32(x), CpuStorage::F32(w), CpuStorage::F32(b)) => {
                 let (x, w, b) = (
-                    contiguous(x, l1, "input")?,
-                    contiguous(w, l2, "weight")?,
-                    contiguous(b, l3, "bias")?,
+                    contiguous(x, l1, "conv2d", "input")?,
+                    contiguous(w, l2, "conv2d", "weight")?,
+                    contiguous(b, l3, "conv2d", "bias")?,
                 );
                 CpuStorage::F32(forward_impl(x, w, Some(b), &g, self.algo))
             }
             (CpuStorage::F64(x), CpuStorage::F64(w), CpuStorage::F64(b)) => {
                 let (x, w, b) = (
-                    contiguous(x, l1, "input")?,
-                    contiguous(w, l2, "weight")?,
-                    contiguous(b, l3, "bias")?,
+                    contiguous(x, l1, "conv2d", "input")?,
+                    contiguous(w, l2, "conv2d", "weight")?,
+                    contiguous(b, l3, "conv2d", "bias")?,
                 );
                 CpuStorage::F64(forward_impl(x, w, Some(b), &g, self.algo))
             }
@@ -468,10 +469,10 @@ impl CustomOp1 for GradBiasOp {
         };
         let out = match s {
             CpuStorage::F32(v) => {
-                CpuStorage::F32(channel_sums(contiguous(v, l, "gradient")?, b, c))
+                CpuStorage::F32(channel_sums(contiguous(v, l, "conv2d", "gradient")?, b, c))
             }
             CpuStorage::F64(v) => {
-                CpuStorage::F64(channel_sums(contiguous(v, l, "gradient")?, b, c))
+                CpuStorage::F64(channel_sums(contiguous(v, l, "conv2d", "gradient")?, b, c))
             }
             s => bail!(
                 "conv2d backward: needs an f32 or f64 gradient, got {:?}",

@@ -4,6 +4,7 @@
 
 pub mod conv;
 pub mod resample;
+mod storage;
 pub mod vit;
 
 pub use conv::{conv2d, conv2d_with_algo, Conv2dSpec, ConvAlgo};

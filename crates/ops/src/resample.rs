@@ -6,6 +6,7 @@
 //! the transposed taps; elsewhere the dense matrices go through candle's matmul.
 
 use crate::conv::elem::Elem;
+use crate::storage::contiguous;
 use candle_core::backend::BackendStorage;
 use candle_core::{bail, CpuStorage, CustomOp1, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
@@ -356,13 +357,6 @@ fn resize_taps_adjoint<T: Elem>(gy: &[T], p: Plan, th: &Taps, tw: &Taps) -> Vec<
     gx
 }
 
-fn contiguous<'a, T>(data: &'a [T], l: &Layout) -> Result<&'a [T]> {
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&data[a..b]),
-        None => bail!("resize: input must be contiguous"),
-    }
-}
-
 /// `[..., H, W] -> [..., out_h, out_w]` by the non-zero taps.
 struct ResizeOp {
     out_h: usize,
@@ -380,8 +374,18 @@ impl CustomOp1 for ResizeOp {
         let th = Taps::new(p.h, p.oh, self.mode);
         let tw = Taps::new(p.w, p.ow, self.mode);
         let y = match s {
-            CpuStorage::F32(v) => CpuStorage::F32(resize_taps(contiguous(v, l)?, p, &th, &tw)),
-            CpuStorage::F64(v) => CpuStorage::F64(resize_taps(contiguous(v, l)?, p, &th, &tw)),
+            CpuStorage::F32(v) => CpuStorage::F32(resize_taps(
+                contiguous(v, l, "resize", "input")?,
+                p,
+                &th,
+                &tw,
+            )),
+            CpuStorage::F64(v) => CpuStorage::F64(resize_taps(
+                contiguous(v, l, "resize", "input")?,
+                p,
+                &th,
+                &tw,
+            )),
             s => bail!("resize supports f32 and f64, got {:?}", s.dtype()),
         };
         Ok((y, Shape::from(out)))
@@ -424,12 +428,18 @@ impl CustomOp1 for ResizeAdjointOp {
         let th = Taps::new(p.h, p.oh, self.mode);
         let tw = Taps::new(p.w, p.ow, self.mode);
         let gx = match s {
-            CpuStorage::F32(v) => {
-                CpuStorage::F32(resize_taps_adjoint(contiguous(v, l)?, p, &th, &tw))
-            }
-            CpuStorage::F64(v) => {
-                CpuStorage::F64(resize_taps_adjoint(contiguous(v, l)?, p, &th, &tw))
-            }
+            CpuStorage::F32(v) => CpuStorage::F32(resize_taps_adjoint(
+                contiguous(v, l, "resize", "input")?,
+                p,
+                &th,
+                &tw,
+            )),
+            CpuStorage::F64(v) => CpuStorage::F64(resize_taps_adjoint(
+                contiguous(v, l, "resize", "input")?,
+                p,
+                &th,
+                &tw,
+            )),
             s => bail!("resize backward supports f32 and f64, got {:?}", s.dtype()),
         };
         Ok((gx, Shape::from(out)))

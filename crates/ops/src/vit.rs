@@ -10,6 +10,8 @@ use candle_core::{
 };
 use rayon::prelude::*;
 
+use crate::storage::contiguous;
+
 /// Layer norm over the last dim of `x` with `weight` and `bias` (f32 or f64), two-pass.
 pub fn layer_norm(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> Result<Tensor> {
     x.contiguous()?
@@ -32,13 +34,6 @@ pub fn gelu_erf(x: &Tensor) -> Result<Tensor> {
 /// channels of the DINOv2 residual stream.
 struct LayerNormOp {
     eps: f64,
-}
-
-fn contiguous_slice<'a, T>(x: &'a [T], l: &Layout, what: &str) -> Result<&'a [T]> {
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&x[a..b]),
-        None => bail!("{what}: operand must be contiguous"),
-    }
 }
 
 impl LayerNormOp {
@@ -71,9 +66,9 @@ impl CustomOp3 for LayerNormOp {
         const WHAT: &str = "layer norm";
         let storage = match (s1, s2, s3) {
             (CpuStorage::F32(x), CpuStorage::F32(w), CpuStorage::F32(b)) => {
-                let x = contiguous_slice(x, l1, WHAT)?;
-                let w = contiguous_slice(w, l2, WHAT)?;
-                let b = contiguous_slice(b, l3, WHAT)?;
+                let x = contiguous(x, l1, WHAT, "input")?;
+                let w = contiguous(w, l2, WHAT, "weight")?;
+                let b = contiguous(b, l3, WHAT, "bias")?;
                 let n = self.check(l1, w.len(), b.len())?;
                 let mut out = vec![0f32; x.len()];
                 let eps = self.eps as f32;
@@ -81,9 +76,9 @@ impl CustomOp3 for LayerNormOp {
                 CpuStorage::F32(out)
             }
             (CpuStorage::F64(x), CpuStorage::F64(w), CpuStorage::F64(b)) => {
-                let x = contiguous_slice(x, l1, WHAT)?;
-                let w = contiguous_slice(w, l2, WHAT)?;
-                let b = contiguous_slice(b, l3, WHAT)?;
+                let x = contiguous(x, l1, WHAT, "input")?;
+                let w = contiguous(w, l2, WHAT, "weight")?;
+                let b = contiguous(b, l3, WHAT, "bias")?;
                 let n = self.check(l1, w.len(), b.len())?;
                 let mut out = vec![0f64; x.len()];
                 par_rows(x, &mut out, n, |x, o| {
@@ -144,9 +139,9 @@ impl CustomOp3 for AttentionOp {
                 l3.dims()
             );
         }
-        let q = contiguous_slice(q, l1, "attention q")?;
-        let k = contiguous_slice(k, l2, "attention k")?;
-        let v = contiguous_slice(v, l3, "attention v")?;
+        let q = contiguous(q, l1, "attention", "q")?;
+        let k = contiguous(k, l2, "attention", "k")?;
+        let v = contiguous(v, l3, "attention", "v")?;
         let mut out = vec![0f32; heads * n * d];
         if n == 0 || d == 0 {
             return Ok((CpuStorage::F32(out), l1.shape().clone()));
@@ -231,13 +226,13 @@ impl CustomOp1 for GeluErfOp {
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
         let storage = match s {
             CpuStorage::F32(x) => {
-                let x = contiguous_slice(x, l, "gelu")?;
+                let x = contiguous(x, l, "gelu", "input")?;
                 let mut out = vec![0f32; x.len()];
                 par_rows(x, &mut out, 1, rows::gelu_erf);
                 CpuStorage::F32(out)
             }
             CpuStorage::F64(x) => {
-                let x = contiguous_slice(x, l, "gelu")?;
+                let x = contiguous(x, l, "gelu", "input")?;
                 let mut out = vec![0f64; x.len()];
                 par_rows(x, &mut out, 1, |x, o| {
                     for (o, &v) in o.iter_mut().zip(x) {

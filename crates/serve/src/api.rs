@@ -168,10 +168,7 @@ fn stored(s: &AppState, id: &str) -> ApiResult<Arc<Stored>> {
 
 fn body_error(e: BytesRejection, limit: usize, what: &str) -> ApiError {
     if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
-        ApiError::too_large(format!(
-            "the {what} is larger than this server takes ({} MB)",
-            limit >> 20
-        ))
+        too_large(limit, what)
     } else {
         ApiError::bad_request(format!("cannot read the {what}: {}", e.body_text()))
     }
@@ -246,7 +243,7 @@ async fn create_avatar(State(s): St, body: Result<Bytes, BytesRejection>) -> Api
     let limit = s.cfg.max_photo_bytes;
     let body = body.map_err(|e| body_error(e, limit, "photo"))?;
     if body.len() > limit {
-        return Err(body_error_len(limit, "photo"));
+        return Err(too_large(limit, "photo"));
     }
     if body.is_empty() {
         return Err(ApiError::bad_request(
@@ -310,7 +307,7 @@ async fn create_avatar(State(s): St, body: Result<Bytes, BytesRejection>) -> Api
     ))
 }
 
-fn body_error_len(limit: usize, what: &str) -> ApiError {
+fn too_large(limit: usize, what: &str) -> ApiError {
     ApiError::too_large(format!(
         "the {what} is larger than this server takes ({} MB)",
         limit >> 20
@@ -624,8 +621,6 @@ fn encode(mut rgb: Vec<u8>, size: usize, watermark: bool, jpeg: bool) -> ApiResu
 #[derive(Debug, Default, Deserialize)]
 pub struct ReenactQuery {
     pub watermark: Option<bool>,
-    #[allow(dead_code)]
-    token: Option<String>,
 }
 
 async fn reenact(
