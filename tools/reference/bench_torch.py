@@ -3,6 +3,11 @@ so `gagavatar bench model` can be compared with PyTorch on the same CPU at the s
 (machine load and clock vary; only numbers taken side by side compare).
 
     python3 tools/reference/bench_torch.py --preset release --threads 2 --runs 5
+    python3 tools/reference/bench_torch.py --preset release --threads 2 --precision bf16
+
+`--precision bf16` runs every stage under `torch.autocast('cpu', dtype=torch.bfloat16)`,
+PyTorch's own mixed precision (bf16 matmuls and convolutions, f32 elsewhere), to compare with
+`gagavatar bench model --precision bf16`.
 
 Stages match `gagavatar bench model`: preprocess, dino, dpt head, gs_generator_g, l0, l1,
 reconstruct (their sum, as one pass), renderer (StyleUNet on a random coarse image). Weights are
@@ -28,6 +33,7 @@ def main():
     ap.add_argument("--preset", default="release", choices=sorted(nr.PRESETS))
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--precision", default="f32", choices=["f32", "bf16"])
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     # net_reference defaults to float64 for the goldens; inference runs in float32.
@@ -41,7 +47,8 @@ def main():
     stages = ["preprocess", "dino", "dpt head", "gs_generator_g", "gs_generator_l0", "gs_generator_l1",
               "reconstruct (total)", "renderer"]
     times = {s: [] for s in stages}
-    with torch.inference_mode():
+    autocast = torch.autocast("cpu", dtype=torch.bfloat16, enabled=args.precision == "bf16")
+    with torch.inference_mode(), autocast:
         for run in range(args.runs + 1):
             dbg = {}
             lap = {}
@@ -70,7 +77,7 @@ def main():
             if run > 0:
                 for k, v in lap.items():
                     times[k].append(v * 1e3)
-    print(f"PyTorch {torch.__version__} reference, {args.preset} ({args.threads} threads, "
+    print(f"PyTorch {torch.__version__} reference, {args.preset} {args.precision} ({args.threads} threads, "
           f"median of {args.runs} runs after a warm-up)")
     for s in stages:
         print(f"  {s:<22}{statistics.median(times[s]):10.1f} ms")

@@ -159,6 +159,14 @@ pub struct ModelBench {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Arithmetic of the products: f32 (the release's) or bf16 (AVX512-BF16 CPUs). With bf16
+    /// the run ends with the quality cost: the fine image of bf16 against f32 (max abs, PSNR).
+    #[arg(long, default_value = "f32")]
+    precision: gagavatar_ops::Precision,
+    /// Source image (resized to the preset's size) instead of uniform noise: a real face gives
+    /// the quality comparison realistic activations.
+    #[arg(long)]
+    image: Option<std::path::PathBuf>,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -314,7 +322,7 @@ fn bench_model(args: ModelBench) -> Result<()> {
     let cfg = ModelConfig::preset(&args.preset)
         .with_context(|| format!("unknown preset `{}`", args.preset))?;
     let dev = Device::Cpu;
-    let model = match &args.ckpt {
+    let mut model = match &args.ckpt {
         Some(p) => load_model(p, Some(&cfg), &dev)?,
         None => {
             let w = init_weights(&cfg, 0)?;
@@ -325,9 +333,27 @@ fn bench_model(args: ModelBench) -> Result<()> {
             gagavatar_net::checkpoint::build_model(&cfg, map, &dev)?
         }
     };
+    model.set_precision(args.precision)?;
     let rss_after_load = peak_rss_mib();
     let size = cfg.image_size;
-    let image = Tensor::rand(0f32, 1f32, (1, 3, size, size), &dev)?;
+    let image = match &args.image {
+        Some(p) => {
+            let img = image::open(p)
+                .with_context(|| format!("reading {}", p.display()))?
+                .resize_exact(
+                    size as u32,
+                    size as u32,
+                    image::imageops::FilterType::Triangle,
+                )
+                .to_rgb8();
+            Tensor::from_vec(img.into_raw(), (size, size, 3), &dev)?
+                .permute((2, 0, 1))?
+                .unsqueeze(0)?
+                .to_dtype(candle_core::DType::F32)?
+                .affine(1.0 / 255.0, 0.0)?
+        }
+        None => Tensor::rand(0f32, 1f32, (1, 3, size, size), &dev)?,
+    };
     // The release's frontal camera is yaw = pi (R = diag(-1, 1, -1)); slightly off-axis.
     let tm = gagavatar_splat::Camera::look_at_origin_matrix(9.0, std::f64::consts::PI + 0.1, 0.05);
     let tm: Vec<f32> = tm.iter().flatten().map(|&x| x as f32).collect();
@@ -371,8 +397,9 @@ fn bench_model(args: ModelBench) -> Result<()> {
     })?;
     bar.finish_and_clear();
     println!(
-        "model {} ({threads} threads, median of {runs} runs after a warm-up)",
-        cfg.name
+        "model {} {} ({threads} threads, median of {runs} runs after a warm-up)",
+        cfg.name,
+        args.precision.name()
     );
     for (k, name) in names.iter().enumerate() {
         println!("  {name:<22} {:>9.1} ms", 1e3 * median(&mut times[k]));
@@ -383,7 +410,40 @@ fn bench_model(args: ModelBench) -> Result<()> {
     if let Some(mib) = peak_rss_mib() {
         println!("  peak RSS               {mib:>9.0} MiB");
     }
+    if args.precision != gagavatar_ops::Precision::F32 {
+        let fine = |model: &GagAvatar| -> Result<Vec<f32>> {
+            pool.install(|| {
+                let avatar = model.reconstruct(&image, &tm)?;
+                let coarse = model.splat_coarse(&avatar, &verts, &tm)?;
+                Ok(model
+                    .render(&coarse, Noise::Fixed)?
+                    .flatten_all()?
+                    .to_vec1()?)
+            })
+        };
+        let low = fine(&model)?;
+        model.set_precision(gagavatar_ops::Precision::F32)?;
+        let full = fine(&model)?;
+        let (max_abs, psnr) = image_difference(&low, &full);
+        println!(
+            "  fine image, {} against f32: max abs {max_abs:.2e}, PSNR {psnr:.1} dB (values in [0, 1])",
+            args.precision.name()
+        );
+    }
     Ok(())
+}
+
+/// Largest absolute difference and PSNR (peak 1) of two images in [0, 1].
+fn image_difference(a: &[f32], b: &[f32]) -> (f64, f64) {
+    let mut max_abs = 0f64;
+    let mut sq = 0f64;
+    for (&x, &y) in a.iter().zip(b) {
+        let d = (x as f64 - y as f64).abs();
+        max_abs = if d.is_nan() { f64::NAN } else { max_abs.max(d) };
+        sq += d * d;
+    }
+    let mse = sq / a.len().max(1) as f64;
+    (max_abs, 10.0 * (1.0 / mse).log10())
 }
 
 /// Peak resident memory of another process (Linux `VmHWM`), in MiB.

@@ -53,6 +53,7 @@ fn steps(a: &DemoArgs, assets: &Path) -> (ReenactArgs, OrbitArgs, ExportPlyArgs)
         n_shape: 300,
         n_exp: 100,
         fresh_noise: false,
+        precision: gagavatar_ops::Precision::F32,
     };
     let reenact = ReenactArgs {
         src: src(),

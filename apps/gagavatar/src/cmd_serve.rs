@@ -59,6 +59,9 @@ pub struct ServeArgs {
     /// Worker threads for tracking and rendering (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
+    /// Arithmetic of the model's products: f32 (the release's) or bf16 (AVX512-BF16 CPUs).
+    #[arg(long, default_value = "f32")]
+    pub precision: gagavatar_ops::Precision,
 }
 
 pub fn run(a: ServeArgs) -> Result<()> {
@@ -74,6 +77,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
     if let Some(f) = &a.flame {
         cfg.flame = FlameSource::from_arg(f);
     }
+    cfg.precision = a.precision;
     let engine = Engine::open(&cfg).map_err(crate::cmd_model::with_flag_hints)?;
     for w in engine.warnings() {
         eprintln!("warning: {w}");

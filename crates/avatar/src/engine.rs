@@ -10,6 +10,7 @@ use gagavatar_net::checkpoint;
 use gagavatar_net::model::GagAvatar;
 use gagavatar_net::style_unet::Noise;
 use gagavatar_net::ModelConfig;
+use gagavatar_ops::Precision;
 
 use crate::avatar::Avatar;
 use crate::cache::{track_input, TrackTo, Tracked};
@@ -34,6 +35,9 @@ pub struct EngineConfig {
     /// The renderer's noise: the fixed buffers (reproducible) or fresh per frame (the
     /// release's behaviour).
     pub noise: Noise,
+    /// The CPU model's products: f32 (the release's arithmetic) or bf16 with f32 sums (CPUs
+    /// with AVX512-BF16; `Engine::open` refuses it elsewhere, before loading anything).
+    pub precision: Precision,
 }
 
 impl EngineConfig {
@@ -47,6 +51,7 @@ impl EngineConfig {
             n_shape: 300,
             n_exp: 100,
             noise: Noise::Fixed,
+            precision: Precision::F32,
         }
     }
 }
@@ -67,6 +72,7 @@ impl Engine {
     /// Reads the weights, builds the model, loads the FLAME asset and checks that they fit.
     /// A suspected asset mismatch is not an error: it is in [`Engine::warnings`].
     pub fn open(cfg: &EngineConfig) -> Result<Self> {
+        cfg.precision.check()?;
         let explicit = cfg
             .preset
             .as_deref()
@@ -93,8 +99,9 @@ impl Engine {
             .cloned();
         let model_cfg = checkpoint::resolve_config(&weights, explicit.as_ref());
         checkpoint::check_keys(&model_cfg, &weights.tensors).map_err(weights_err)?;
-        let model = checkpoint::build_model(&model_cfg, weights.tensors, &Device::Cpu)
+        let mut model = checkpoint::build_model(&model_cfg, weights.tensors, &Device::Cpu)
             .map_err(weights_err)?;
+        model.set_precision(cfg.precision)?;
 
         let source = match &cfg.flame {
             FlameSource::FromWeights => {

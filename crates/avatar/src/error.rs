@@ -50,6 +50,9 @@ pub enum AvatarError {
         #[source]
         source: std::io::Error,
     },
+    /// A precision this CPU cannot run (bf16 without AVX512-BF16).
+    #[error(transparent)]
+    Precision(#[from] gagavatar_ops::bf16::Bf16Error),
     #[error(transparent)]
     Track(#[from] gagavatar_track::TrackError),
     #[error(transparent)]

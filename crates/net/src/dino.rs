@@ -14,7 +14,11 @@
 
 use candle_core::{bail, DType, Result, Tensor, D};
 use candle_nn::VarBuilder;
+use std::sync::Arc;
+
+use gagavatar_ops::bf16::Bf16Linear;
 use gagavatar_ops::vit;
+use gagavatar_ops::Precision;
 use gagavatar_ops::{resize, ResizeMode};
 
 use crate::config::ModelConfig;
@@ -53,6 +57,8 @@ pub fn preprocess(image: &Tensor, cfg: &ModelConfig) -> Result<Tensor> {
 struct Linear {
     weight: LinearWeight,
     bias: Tensor,
+    /// The weight packed for bf16 products, under `Precision::Bf16` (fixed weights only).
+    bf16: Option<Arc<Bf16Linear>>,
 }
 
 #[derive(Debug, Clone)]
@@ -77,7 +83,27 @@ impl Linear {
         } else {
             LinearWeight::Transposed(w.t()?.contiguous()?)
         };
-        Ok(Self { weight, bias })
+        Ok(Self {
+            weight,
+            bias,
+            bf16: None,
+        })
+    }
+
+    fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        self.bf16 = match precision {
+            Precision::F32 => None,
+            Precision::Bf16 => {
+                if self.is_live() {
+                    bail!("bf16 precision is for inference; this ViT's weights are trainable");
+                }
+                Some(Arc::new(Bf16Linear::new(
+                    &self.weight()?,
+                    Some(&self.bias),
+                )?))
+            }
+        };
+        Ok(())
     }
 
     fn is_live(&self) -> bool {
@@ -85,6 +111,11 @@ impl Linear {
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        if let Some(packed) = &self.bf16 {
+            if !x.track_op() {
+                return packed.forward(x);
+            }
+        }
         let y = match &self.weight {
             LinearWeight::Transposed(wt) => x.matmul(wt)?,
             LinearWeight::Live(w) => x.matmul(&w.t()?)?,
@@ -150,6 +181,8 @@ struct Attention {
     qkv: Linear,
     proj: Linear,
     heads: usize,
+    /// Both attention products in bf16 (`Precision::Bf16`).
+    bf16: bool,
 }
 
 impl Attention {
@@ -170,7 +203,9 @@ impl Attention {
         let fused = !(q.track_op() || k.track_op() || v.track_op())
             && q.dtype() == DType::F32
             && q.device().is_cpu();
-        let y = if fused {
+        let y = if fused && self.bf16 {
+            vit::attention_bf16(&q, &k, &v)?
+        } else if fused {
             vit::attention(&q, &k, &v)?
         } else {
             attend(&q, &k, &v, (LOGITS_PER_CHUNK / (n * n)).max(1))?
@@ -228,6 +263,7 @@ impl Block {
                 qkv: Linear::new(vb.pp("attn.qkv"), c, 3 * c)?,
                 proj: Linear::new(vb.pp("attn.proj"), c, c)?,
                 heads: cfg.vit_heads,
+                bf16: false,
             },
             ls1: vb.get(c, "ls1.gamma")?,
             norm2: LayerNorm::new(vb.pp("norm2"), c)?,
@@ -371,6 +407,21 @@ impl Dinov2 {
             Ok(o) => Ok(o),
             Err(_) => bail!("DINOv2: expected four intermediate outputs"),
         }
+    }
+
+    /// Switches the products (patch embedding, qkv, attention, projection, MLP) between f32 and
+    /// bf16; bf16 packs each weight once (an error on a CPU without AVX512-BF16).
+    pub fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        precision.check().map_err(candle_core::Error::wrap)?;
+        self.patch_embed.set_precision(precision)?;
+        for block in &mut self.blocks {
+            block.attn.qkv.set_precision(precision)?;
+            block.attn.bf16 = precision == Precision::Bf16;
+            block.attn.proj.set_precision(precision)?;
+            block.fc1.set_precision(precision)?;
+            block.fc2.set_precision(precision)?;
+        }
+        Ok(())
     }
 
     /// Whether the weights are trainable variables (built from a `VarMap`), i.e. the forward

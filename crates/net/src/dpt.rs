@@ -4,11 +4,29 @@
 //! differentiable.
 
 use candle_core::{bail, Result, Tensor};
+use std::sync::Arc;
+
 use candle_nn::VarBuilder;
-use gagavatar_ops::{resize, ResizeMode};
+use gagavatar_ops::bf16::Bf16Linear;
+use gagavatar_ops::{resize, Precision, ResizeMode};
 
 use crate::config::ModelConfig;
-use crate::layers::Conv2d;
+use crate::layers::{fixed, Conv2d};
+
+/// `weight` [out, in] and `bias` packed for bf16 products under `Precision::Bf16`.
+fn packed_linear(
+    precision: Precision,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+) -> Result<Option<Arc<Bf16Linear>>> {
+    Ok(match precision {
+        Precision::F32 => None,
+        Precision::Bf16 => {
+            fixed(weight)?;
+            Some(Arc::new(Bf16Linear::new(weight, bias)?))
+        }
+    })
+}
 
 /// `x + conv2(relu(conv1(relu(x))))`; the release's ReLUs are not in place, so `x` is kept.
 #[derive(Debug, Clone)]
@@ -23,6 +41,11 @@ impl ResidualConvUnit {
             conv1: Conv2d::k3(vb.pp("conv1"), c, c)?,
             conv2: Conv2d::k3(vb.pp("conv2"), c, c)?,
         })
+    }
+
+    fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        self.conv1.set_precision(precision)?;
+        self.conv2.set_precision(precision)
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
@@ -48,6 +71,12 @@ impl FusionBlock {
             res_conf_unit1: ResidualConvUnit::new(vb.pp("resConfUnit1"), c)?,
             res_conf_unit2: ResidualConvUnit::new(vb.pp("resConfUnit2"), c)?,
         })
+    }
+
+    fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        self.res_conf_unit1.set_precision(precision)?;
+        self.res_conf_unit2.set_precision(precision)?;
+        self.out_conv.set_precision(precision)
     }
 
     /// `out = a (+ rcu1(skip))`, `rcu2`, align-corners resize to `size` (x2 when `None`),
@@ -78,6 +107,7 @@ struct PatchTransposedConv {
     bias: Tensor,
     cout: usize,
     k: usize,
+    bf16: Option<Arc<Bf16Linear>>,
 }
 
 impl PatchTransposedConv {
@@ -89,14 +119,23 @@ impl PatchTransposedConv {
             bias: vb.get(cout, "bias")?.reshape((cout, 1))?,
             cout,
             k,
+            bf16: None,
         })
+    }
+
+    fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        self.bf16 = packed_linear(precision, &self.weight.t()?, None)?;
+        Ok(())
     }
 
     /// `x [B * g * g, Cin]` (pixel-major, row-major pixels) -> `[B, Cout, g k, g k]`.
     fn forward(&self, x: &Tensor, b: usize, g: usize) -> Result<Tensor> {
         let (c, k) = (self.cout, self.k);
-        x.matmul(&self.weight)?
-            .reshape((b * g * g, c, k * k))?
+        let y = match &self.bf16 {
+            Some(packed) if !x.track_op() => packed.forward(x)?,
+            _ => x.matmul(&self.weight)?,
+        };
+        y.reshape((b * g * g, c, k * k))?
             .broadcast_add(&self.bias)?
             .reshape((b, g, g, c, k, k))?
             .permute((0, 3, 1, 4, 2, 5))?
@@ -118,6 +157,7 @@ struct Level {
     /// `projects.k`, a 1x1 conv applied to the tokens as a GEMM: `[Cout, Cin]` and `[Cout]`.
     project_weight: Tensor,
     project_bias: Tensor,
+    project_bf16: Option<Arc<Bf16Linear>>,
     resize: Resize,
     layer_rn: Conv2d,
     size: usize,
@@ -156,6 +196,7 @@ impl DptHead {
             levels.push(Level {
                 project_weight: project.weight.reshape((ck, c))?,
                 project_bias,
+                project_bf16: None,
                 resize,
                 layer_rn: Conv2d::new(vb.pp(format!("layer_rn.{k}")), 3 + ck, f, 3, 1, 1, false)?,
                 size: cfg.dpt_level_size(k),
@@ -173,6 +214,24 @@ impl DptHead {
             dino_size: cfg.dino_size,
             plane_size: cfg.plane_size(),
         })
+    }
+
+    /// Switches every product between f32 and bf16 (bf16: fixed weights only, inference).
+    pub fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        for level in &mut self.levels {
+            level.project_bf16 =
+                packed_linear(precision, &level.project_weight, Some(&level.project_bias))?;
+            match &mut level.resize {
+                Resize::Up(t) => t.set_precision(precision)?,
+                Resize::Identity => {}
+                Resize::Down(conv) => conv.set_precision(precision)?,
+            }
+            level.layer_rn.set_precision(precision)?;
+        }
+        for block in &mut self.refinenet {
+            block.set_precision(precision)?;
+        }
+        self.output_conv.set_precision(precision)
     }
 
     /// `feats`: the four [`crate::dino::Dinov2`] outputs [B, grid^2, vit_dim]; `image`: the
@@ -198,9 +257,12 @@ impl DptHead {
                 );
             }
             let tokens = tokens.reshape((b * g * g, self.dim))?;
-            let p = tokens
-                .matmul(&level.project_weight.t()?)?
-                .broadcast_add(&level.project_bias)?;
+            let p = match &level.project_bf16 {
+                Some(packed) if !tokens.track_op() => packed.forward(&tokens)?,
+                _ => tokens
+                    .matmul(&level.project_weight.t()?)?
+                    .broadcast_add(&level.project_bias)?,
+            };
             let ck = level.project_bias.dim(0)?;
             let to_nchw = |p: &Tensor| -> Result<Tensor> {
                 p.reshape((b, g, g, ck))?

@@ -20,6 +20,9 @@ pub enum NetError {
     Input { name: String, reason: String },
     #[error(transparent)]
     Splat(#[from] gagavatar_splat::SplatError),
+    /// A precision this CPU cannot run (bf16 without AVX512-BF16).
+    #[error(transparent)]
+    Precision(#[from] gagavatar_ops::bf16::Bf16Error),
     /// A weights file that cannot be read as a torch zip or safetensors file.
     #[error(transparent)]
     File(#[from] gagavatar_formats::FormatError),

@@ -3,10 +3,11 @@
 //! (`gs_generator_l0`, `gs_generator_l1`).
 
 use candle_core::{Result, Tensor};
-use candle_nn::{linear, Linear, Module, VarBuilder};
+use candle_nn::VarBuilder;
+use gagavatar_ops::Precision;
 
 use crate::config::{ModelConfig, DIR_ENCODING_DIM};
-use crate::layers::Conv2d;
+use crate::layers::{Conv2d, Linear};
 
 /// Scale activation: `SCALE_MAX * sigmoid`, keeping every Gaussian small.
 pub const SCALE_MAX: f64 = 0.05;
@@ -42,13 +43,18 @@ struct Head {
 impl Head {
     fn new(vb: VarBuilder, cin: usize, hidden: usize, out: usize) -> Result<Self> {
         Ok(Self {
-            l0: linear(cin, hidden, vb.pp("0"))?,
-            l2: linear(hidden, out, vb.pp("2"))?,
+            l0: Linear::new(vb.pp("0"), cin, hidden)?,
+            l2: Linear::new(vb.pp("2"), hidden, out)?,
         })
     }
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         self.l2.forward(&self.l0.forward(x)?.relu()?)
+    }
+
+    fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        self.l0.set_precision(precision)?;
+        self.l2.set_precision(precision)
     }
 }
 
@@ -56,6 +62,9 @@ impl Head {
 #[derive(Debug, Clone)]
 pub struct LinearGsGenerator {
     feature_layers: [Linear; 4],
+    /// `head_base W_a^T` of the first layer (see `forward`) for fixed weights, keyed by the
+    /// id of the `head_base` it was computed from: it does not depend on the photo.
+    vertex_term: std::sync::Arc<std::sync::Mutex<Option<(candle_core::TensorId, Tensor)>>>,
     color: Head,
     opacity: Head,
     scale: Head,
@@ -67,15 +76,16 @@ impl LinearGsGenerator {
         let h = cfg.gs_linear_hidden;
         let f = vb.pp("feature_layers");
         let feature_layers = [
-            linear(cfg.head_base_dim + cfg.vit_dim, h, f.pp("0"))?,
-            linear(h, h, f.pp("2"))?,
-            linear(h, h, f.pp("4"))?,
-            linear(h, h, f.pp("6"))?,
+            Linear::new(f.pp("0"), cfg.head_base_dim + cfg.vit_dim, h)?,
+            Linear::new(f.pp("2"), h, h)?,
+            Linear::new(f.pp("4"), h, h)?,
+            Linear::new(f.pp("6"), h, h)?,
         ];
         let cin = h + DIR_ENCODING_DIM;
         let hh = cfg.gs_head_hidden;
         Ok(Self {
             feature_layers,
+            vertex_term: Default::default(),
             color: Head::new(vb.pp("color_layers"), cin, hh, cfg.color_dim)?,
             opacity: Head::new(vb.pp("opacity_layers"), cin, hh, 1)?,
             scale: Head::new(vb.pp("scale_layers"), cin, hh, 3)?,
@@ -84,27 +94,71 @@ impl LinearGsGenerator {
     }
 
     /// `head_base` [V, hb], `f_id` [B, D], `encoding` [B, 27] -> attributes `[B, V, k]`.
+    /// `head_base W_a^T` [V, hidden]: cached when nothing tracks gradients (inference), else
+    /// recomputed so gradients reach both.
+    fn vertex_term(&self, head_base: &Tensor, wa: &Tensor) -> Result<Tensor> {
+        if head_base.track_op() || wa.track_op() {
+            return head_base.matmul(&wa.t()?);
+        }
+        let mut cache = self
+            .vertex_term
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner());
+        if let Some((id, t)) = cache.as_ref() {
+            if *id == head_base.id() {
+                return Ok(t.clone());
+            }
+        }
+        let t = head_base.matmul(&wa.t()?)?;
+        *cache = Some((head_base.id(), t.clone()));
+        Ok(t)
+    }
+
+    /// Switches the linear layers between f32 and bf16 products.
+    pub fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        for l in &mut self.feature_layers {
+            l.set_precision(precision)?;
+        }
+        for h in [
+            &mut self.color,
+            &mut self.opacity,
+            &mut self.scale,
+            &mut self.rotation,
+        ] {
+            h.set_precision(precision)?;
+        }
+        Ok(())
+    }
+
     pub fn forward(
         &self,
         head_base: &Tensor,
         f_id: &Tensor,
         encoding: &Tensor,
     ) -> Result<GaussianAttributes> {
-        let (v, _) = head_base.dims2()?;
-        let (b, d) = f_id.dims2()?;
-        let x = Tensor::cat(
-            &[
-                head_base
-                    .unsqueeze(0)?
-                    .broadcast_as((b, v, head_base.dim(1)?))?,
-                f_id.unsqueeze(1)?.broadcast_as((b, v, d))?,
-            ],
-            2,
-        )?;
-        let mut x = x;
-        for (i, l) in self.feature_layers.iter().enumerate() {
+        let (v, hd) = head_base.dims2()?;
+        let (b, _) = f_id.dims2()?;
+        // The first layer reads `[head_base[v] | f_id]`, so it splits into a per-vertex term
+        // `head_base W_a^T` and a per-photo row `f_id W_b^T + bias` added to every vertex: no
+        // [B, V, head_base + vit_dim] concatenation, a quarter of the multiplies, and with fixed
+        // weights the vertex term is computed once.
+        let first = self.feature_layers[0].inner();
+        let w = first.weight();
+        let vertex = self.vertex_term(head_base, &w.narrow(1, 0, hd)?)?;
+        let id_row = f_id.matmul(&w.narrow(1, hd, w.dim(1)? - hd)?.t()?)?;
+        let id_row = match first.bias() {
+            Some(bias) => id_row.broadcast_add(bias)?,
+            None => id_row,
+        };
+        let mut x = vertex
+            .unsqueeze(0)?
+            .broadcast_add(&id_row.unsqueeze(1)?)?
+            .relu()?;
+        debug_assert_eq!(x.dims3()?, (b, v, w.dim(0)?));
+        let last = self.feature_layers.len() - 1;
+        for (i, l) in self.feature_layers.iter().enumerate().skip(1) {
             x = l.forward(&x)?;
-            if i + 1 < self.feature_layers.len() {
+            if i < last {
                 x = x.relu()?;
             }
         }
@@ -166,6 +220,14 @@ impl ConvGsGenerator {
     }
 
     /// `f_local` [B, F, S, S], `encoding` [B, 27].
+    /// Switches the convolutions between f32 and bf16 products.
+    pub fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        for c in &mut self.convs {
+            c.set_precision(precision)?;
+        }
+        Ok(())
+    }
+
     pub fn forward(&self, f_local: &Tensor, encoding: &Tensor) -> Result<LiftedAttributes> {
         let (b, _, h, w) = f_local.dims4()?;
         let e = encoding.dim(1)?;

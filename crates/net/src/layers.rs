@@ -1,9 +1,12 @@
-//! Small building blocks shared by the modules: a convolution whose parameters are the
-//! checkpoint's `weight`/`bias`, run by the fast kernels of `gagavatar-ops`.
+//! Small building blocks shared by the modules: a convolution and a linear layer whose
+//! parameters are the checkpoint's `weight`/`bias`, run by the kernels of `gagavatar-ops` in
+//! f32 or, after `set_precision(Precision::Bf16)`, with bf16 products.
 
-use candle_core::{Result, Tensor};
+use candle_core::{bail, Result, Tensor};
 use candle_nn::VarBuilder;
-use gagavatar_ops::{conv2d, Conv2dSpec};
+use gagavatar_ops::bf16::Bf16Linear;
+use gagavatar_ops::conv::Bf16Conv;
+use gagavatar_ops::{conv2d, Conv2dSpec, Precision};
 
 /// `nn.Conv2d` (square kernel, no groups or dilation).
 #[derive(Debug, Clone)]
@@ -11,6 +14,8 @@ pub struct Conv2d {
     pub weight: Tensor,
     pub bias: Option<Tensor>,
     pub spec: Conv2dSpec,
+    /// The weight prepared for bf16 products, under `Precision::Bf16`.
+    bf16: Option<Bf16Conv>,
 }
 
 impl Conv2d {
@@ -34,7 +39,30 @@ impl Conv2d {
             weight,
             bias,
             spec: Conv2dSpec { stride, padding },
+            bf16: None,
         })
+    }
+
+    /// A convolution from tensors already loaded (f32 products until `set_precision`).
+    pub fn from_parts(weight: Tensor, bias: Option<Tensor>, spec: Conv2dSpec) -> Self {
+        Self {
+            weight,
+            bias,
+            spec,
+            bf16: None,
+        }
+    }
+
+    /// Switches between f32 and bf16 products (bf16: fixed weights only, inference).
+    pub fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        self.bf16 = match precision {
+            Precision::F32 => None,
+            Precision::Bf16 => {
+                fixed(&self.weight)?;
+                Some(Bf16Conv::new(&self.weight, self.bias.as_ref(), self.spec)?)
+            }
+        };
+        Ok(())
     }
 
     /// A 3x3 convolution with padding 1 and bias, the most common layer.
@@ -48,11 +76,61 @@ impl Conv2d {
     }
 
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        conv2d(x, &self.weight, self.bias.as_ref(), self.spec)
+        match &self.bf16 {
+            Some(packed) if !x.track_op() => packed.forward(x),
+            _ => conv2d(x, &self.weight, self.bias.as_ref(), self.spec),
+        }
     }
 }
 
-/// Leaky ReLU: `max(x, slope x)` for 0 < slope < 1.
-pub fn leaky_relu(x: &Tensor, slope: f64) -> Result<Tensor> {
-    x.maximum(&(x * slope)?)
+/// bf16 products are for inference: weights that train stay f32.
+pub fn fixed(weight: &Tensor) -> Result<()> {
+    if weight.track_op() || weight.is_variable() {
+        bail!("bf16 precision is for inference; these weights are trainable");
+    }
+    Ok(())
+}
+
+/// `nn.Linear` (`y = x W^T + b` over the last dim) that can run its product in bf16.
+#[derive(Debug, Clone)]
+pub struct Linear {
+    inner: candle_nn::Linear,
+    bf16: Option<std::sync::Arc<Bf16Linear>>,
+}
+
+impl Linear {
+    /// Loads `weight` [out, in] and `bias` [out].
+    pub fn new(vb: VarBuilder, cin: usize, cout: usize) -> Result<Self> {
+        Ok(Self {
+            inner: candle_nn::linear(cin, cout, vb)?,
+            bf16: None,
+        })
+    }
+
+    /// The layer as candle holds it (its weight and bias).
+    pub fn inner(&self) -> &candle_nn::Linear {
+        &self.inner
+    }
+
+    /// Switches between f32 and bf16 products (bf16: fixed weights only, inference).
+    pub fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        self.bf16 = match precision {
+            Precision::F32 => None,
+            Precision::Bf16 => {
+                fixed(self.inner.weight())?;
+                Some(std::sync::Arc::new(Bf16Linear::new(
+                    self.inner.weight(),
+                    self.inner.bias(),
+                )?))
+            }
+        };
+        Ok(())
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        match &self.bf16 {
+            Some(packed) if !x.track_op() => packed.forward(x),
+            _ => candle_nn::Module::forward(&self.inner, x),
+        }
+    }
 }

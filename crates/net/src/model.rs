@@ -3,6 +3,7 @@
 
 use candle_core::{DType, Tensor};
 use candle_nn::VarBuilder;
+use gagavatar_ops::Precision;
 use gagavatar_splat::{splat, Camera, Gaussians};
 
 use crate::config::{ModelConfig, FOCAL};
@@ -138,6 +139,20 @@ impl GagAvatar {
             gen_l1: ConvGsGenerator::new(cfg, vb.pp("gs_generator_l1"))?,
             renderer: StyleUNet::new(cfg, vb.pp("upsampler"))?,
         })
+    }
+
+    /// Runs the products in `precision` from now on: `Precision::Bf16` packs the weights once
+    /// for bf16 products with f32 sums (inference only; an error on a CPU without
+    /// AVX512-BF16), `Precision::F32` (the default) returns to the release's arithmetic.
+    pub fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        precision.check()?;
+        self.dino.set_precision(precision)?;
+        self.dpt.set_precision(precision)?;
+        self.gen_g.set_precision(precision)?;
+        self.gen_l0.set_precision(precision)?;
+        self.gen_l1.set_precision(precision)?;
+        self.renderer.set_precision(precision)?;
+        Ok(())
     }
 
     /// Source image `[B, 3, H, W]` in [0, 1] (H = W = image_size) and its camera `[B, 3, 4]`

@@ -18,13 +18,13 @@ use std::f64::consts::SQRT_2;
 
 use candle_core::{bail, DType, Module, Result, Tensor, D};
 use candle_nn::{Linear, VarBuilder};
-use gagavatar_ops::{conv2d, resize, Conv2dSpec, ResizeMode};
+use gagavatar_ops::conv::Bf16Conv;
+use gagavatar_ops::epilogue;
+use gagavatar_ops::{conv2d, resize, Conv2dSpec, Precision, ResizeMode};
 
 use crate::config::ModelConfig;
-use crate::layers::Conv2d;
+use crate::layers::{fixed, Conv2d};
 
-/// Negative slope of every leaky ReLU in the renderer.
-const SLOPE: f64 = 0.2;
 /// Added to the squared norms in the style-code normalisation and the demodulation.
 const EPS: f64 = 1e-8;
 
@@ -103,17 +103,23 @@ impl ResBlock {
         push_conv(out, &format!("{prefix}.skip"), &self.skip);
     }
 
+    fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        self.conv1.set_precision(precision)?;
+        self.conv2.set_precision(precision)?;
+        self.skip.set_precision(precision)
+    }
+
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let h = fused::lrelu(self.conv1.forward(x)?)?;
+        let h = epilogue::lrelu(self.conv1.forward(x)?)?;
         if self.up {
-            let h = fused::lrelu(self.conv2.forward(&upsample2x(&h)?)?)?;
+            let h = epilogue::lrelu(self.conv2.forward(&upsample2x(&h)?)?)?;
             // skip(resize(x)) == resize(skip(x)); the 1x1 is 4x cheaper before the upsampling.
             let s = upsample2x(&self.skip.forward(x)?)?;
-            fused::add(h, &s)
+            epilogue::add(h, &s)
         } else {
-            let h = fused::lrelu(self.conv2.forward(&downsample2x(&h)?)?)?;
+            let h = epilogue::lrelu(self.conv2.forward(&downsample2x(&h)?)?)?;
             let s = self.skip.forward(&downsample2x(x)?)?;
-            fused::add(h, &s)
+            epilogue::add(h, &s)
         }
     }
 }
@@ -139,8 +145,14 @@ impl ConditionBranch {
         push_conv(out, &format!("{prefix}.2"), &self.conv2);
     }
 
+    fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        self.conv0.set_precision(precision)?;
+        self.conv2.set_precision(precision)
+    }
+
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        self.conv2.forward(&fused::lrelu(self.conv0.forward(x)?)?)
+        self.conv2
+            .forward(&epilogue::lrelu(self.conv0.forward(x)?)?)
     }
 }
 
@@ -168,6 +180,9 @@ pub struct ModulatedConv {
     cin: usize,
     cout: usize,
     k: usize,
+    /// Under `Precision::Bf16`: the shared weight packed for the input-scaling path (the
+    /// weight-modulation path packs each sample's weight per call).
+    bf16: Option<Bf16Conv>,
 }
 
 /// How [`ModulatedConv`] applies the style (see there); `Auto` picks the cheaper.
@@ -205,7 +220,26 @@ impl ModulatedConv {
             cin,
             cout,
             k,
+            bf16: None,
         })
+    }
+
+    fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        self.bf16 = match precision {
+            Precision::F32 => None,
+            Precision::Bf16 => {
+                fixed(&self.weight)?;
+                Some(Bf16Conv::new(&self.weight, None, self.spec())?)
+            }
+        };
+        Ok(())
+    }
+
+    fn spec(&self) -> Conv2dSpec {
+        Conv2dSpec {
+            stride: 1,
+            padding: self.k / 2,
+        }
     }
 
     fn named_weights(&self, prefix: &str, out: &mut Vec<(String, Tensor)>) {
@@ -276,14 +310,18 @@ impl ModulatedConv {
             }
             p => p,
         };
-        let spec = Conv2dSpec {
-            stride: 1,
-            padding: self.k / 2,
-        };
+        let spec = self.spec();
+        let bf16 = self
+            .bf16
+            .as_ref()
+            .filter(|_| !x.track_op() && !latent.track_op());
         match path {
             ModulationPath::ScaleInput => {
                 let xs = x.broadcast_mul(&style.reshape((b, cin, 1, 1))?)?;
-                let mut y = conv2d(&xs, &self.weight, None, spec)?;
+                let mut y = match bf16 {
+                    Some(packed) => packed.forward(&xs)?,
+                    None => conv2d(&xs, &self.weight, None, spec)?,
+                };
                 if let Some(f) = &factor {
                     y = y.broadcast_mul(&f.reshape((b, self.cout, 1, 1))?)?;
                 }
@@ -310,7 +348,10 @@ impl ModulatedConv {
                     } else {
                         x.narrow(0, i, 1)?
                     };
-                    outs.push(conv2d(&xi, &wi, bias, spec)?);
+                    outs.push(match bf16 {
+                        Some(_) => Bf16Conv::new(&wi, bias, spec)?.forward(&xi)?,
+                        None => conv2d(&xi, &wi, bias, spec)?,
+                    });
                 }
                 if b == 1 {
                     Ok(outs.remove(0))
@@ -363,6 +404,10 @@ impl StyleConv {
     }
 
     /// `noise` [1 or B, 1, H', W'] at the output resolution.
+    fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        self.modulated_conv.set_precision(precision)
+    }
+
     pub fn forward(&self, x: &Tensor, latent: &Tensor, noise: &Tensor) -> Result<Tensor> {
         let up;
         let x = if self.upsample {
@@ -374,7 +419,7 @@ impl StyleConv {
         let y = self
             .modulated_conv
             .forward(x, latent, SQRT_2, Some(&self.bias))?;
-        fused::noise_lrelu(y, noise, &self.noise_weight)
+        epilogue::noise_lrelu(y, noise, &self.noise_weight)
     }
 }
 
@@ -407,12 +452,16 @@ impl ToRgb {
         out.push((format!("{prefix}.bias"), self.bias.clone()));
     }
 
+    fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        self.modulated_conv.set_precision(precision)
+    }
+
     pub fn forward(&self, x: &Tensor, latent: &Tensor, skip: Option<&Tensor>) -> Result<Tensor> {
         let y = self
             .modulated_conv
             .forward(x, latent, 1.0, Some(&self.bias))?;
         match skip {
-            Some(s) => fused::add(y, &upsample2x(s)?),
+            Some(s) => epilogue::add(y, &upsample2x(s)?),
             None => Ok(y),
         }
     }
@@ -482,11 +531,23 @@ impl StyleGan2Decoder {
     }
 
     /// The mapping network: RMS-normalise the code, then Linear + leaky ReLU layers.
+    fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        self.style_conv1.set_precision(precision)?;
+        self.to_rgb1.set_precision(precision)?;
+        for c in &mut self.style_convs {
+            c.set_precision(precision)?;
+        }
+        for c in &mut self.to_rgbs {
+            c.set_precision(precision)?;
+        }
+        Ok(())
+    }
+
     pub fn latent(&self, code: &Tensor) -> Result<Tensor> {
         let ms = code.sqr()?.mean_keepdim(D::Minus1)?;
         let mut x = code.broadcast_div(&(ms + EPS)?.sqrt()?)?;
         for layer in &self.style_mlp {
-            x = fused::lrelu(layer.forward(&x)?)?;
+            x = epilogue::lrelu(layer.forward(&x)?)?;
         }
         Ok(x)
     }
@@ -563,7 +624,7 @@ impl StyleGan2Decoder {
                     out.dims()
                 );
             }
-            out = fused::sft(out, scale, shift)?;
+            out = epilogue::sft(out, scale, shift)?;
             out = conv.forward(&out, &latent, &self.noise(2 * k + 2, b, noise, code)?)?;
             skip = self.to_rgbs[k].forward(&out, &latent, Some(&skip))?;
         }
@@ -653,6 +714,24 @@ impl StyleUNet {
     }
 
     /// The coarse image [B, color_dim, S, S] -> the fine RGB image [B, 3, S, S] in [0, 1].
+    /// Switches the convolutions between f32 and bf16 products (bf16: fixed weights only,
+    /// inference; the small linear layers of the style code stay f32).
+    pub fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        self.conv_body_first.set_precision(precision)?;
+        for b in self.conv_body_down.iter_mut().chain(&mut self.conv_body_up) {
+            b.set_precision(precision)?;
+        }
+        self.final_conv.set_precision(precision)?;
+        for c in self
+            .condition_scale
+            .iter_mut()
+            .chain(&mut self.condition_shift)
+        {
+            c.set_precision(precision)?;
+        }
+        self.decoder.set_precision(precision)
+    }
+
     pub fn forward(&self, x: &Tensor, noise: Noise) -> Result<Tensor> {
         let (feat, skips) = self.down(x)?;
         let code = self.style_code(&feat)?;
@@ -672,14 +751,14 @@ impl StyleUNet {
         if !matches!(x.dtype(), DType::F32 | DType::F64) {
             bail!("the renderer supports f32 and f64, got {:?}", x.dtype());
         }
-        let mut feat = fused::lrelu(self.conv_body_first.forward(x)?)?;
+        let mut feat = epilogue::lrelu(self.conv_body_first.forward(x)?)?;
         let mut skips = Vec::with_capacity(self.conv_body_down.len());
         for block in &self.conv_body_down {
             feat = block.forward(&feat)?;
             skips.push(feat.clone());
         }
         skips.reverse();
-        let feat = fused::lrelu(self.final_conv.forward(&feat)?)?;
+        let feat = epilogue::lrelu(self.final_conv.forward(&feat)?)?;
         Ok((feat, skips))
     }
 
@@ -703,7 +782,7 @@ impl StyleUNet {
             // The caller's `feat` is only read; later levels add into their own fresh output.
             let input = match prev.take() {
                 None => (feat + skip)?,
-                Some(f) => fused::add(f, skip)?,
+                Some(f) => epilogue::add(f, skip)?,
             };
             let feat = self.conv_body_up[k].forward(&input)?;
             out.push((
@@ -747,274 +826,6 @@ impl StyleUNet {
                 .map(|(k, t)| (format!("stylegan_decoder.{k}"), t)),
         );
         out
-    }
-}
-
-/// Element-wise epilogues. Without gradient tracking (inference) they overwrite their first
-/// operand in place: every call site passes a tensor it has just created and owns alone, and
-/// at 512x512 each avoided allocation saves a pass over tens of MB plus its page faults. When
-/// any operand tracks gradients they are the plain candle expressions, so autograd sees the
-/// usual graph.
-mod fused {
-    use candle_core::{
-        bail, CpuStorage, DType, InplaceOp1, InplaceOp2, InplaceOp3, Layout, Result, Tensor,
-    };
-    use rayon::prelude::*;
-
-    use super::SLOPE;
-
-    /// Elements per rayon task: enough to amortise scheduling, small enough to balance.
-    const CHUNK: usize = 1 << 15;
-
-    fn in_place(dst: &Tensor, srcs: &[&Tensor]) -> bool {
-        let ok = |t: &Tensor| {
-            !t.track_op()
-                && t.device().is_cpu()
-                && t.is_contiguous()
-                && t.dtype() == dst.dtype()
-                && matches!(t.dtype(), DType::F32 | DType::F64)
-        };
-        ok(dst) && srcs.iter().all(|t| ok(t))
-    }
-
-    /// Leaky ReLU with slope 0.2.
-    pub fn lrelu(x: Tensor) -> Result<Tensor> {
-        if in_place(&x, &[]) {
-            x.inplace_op1(&LeakyRelu)?;
-            Ok(x)
-        } else {
-            crate::layers::leaky_relu(&x, SLOPE)
-        }
-    }
-
-    /// `x + y`, same shapes.
-    pub fn add(x: Tensor, y: &Tensor) -> Result<Tensor> {
-        if x.dims() == y.dims() && in_place(&x, &[y]) {
-            x.inplace_op2(y, &AddInto)?;
-            Ok(x)
-        } else {
-            x + y
-        }
-    }
-
-    /// SFT: `x * scale + shift`, same shapes.
-    pub fn sft(x: Tensor, scale: &Tensor, shift: &Tensor) -> Result<Tensor> {
-        if x.dims() != scale.dims() || x.dims() != shift.dims() {
-            bail!(
-                "SFT: scale {:?} / shift {:?} do not match the features {:?}",
-                scale.dims(),
-                shift.dims(),
-                x.dims()
-            );
-        }
-        if in_place(&x, &[scale, shift]) {
-            x.inplace_op3(scale, shift, &Sft)?;
-            Ok(x)
-        } else {
-            (x * scale)? + shift
-        }
-    }
-
-    /// StyleConv epilogue: `lrelu(y + weight * noise)`, `y` [B, C, H, W], `noise` [1 or B, 1,
-    /// H, W] (shared by the channels), `weight` [1].
-    pub fn noise_lrelu(y: Tensor, noise: &Tensor, weight: &Tensor) -> Result<Tensor> {
-        let (b, _, h, w) = y.dims4()?;
-        let (nb, nc, nh, nw) = noise.dims4()?;
-        if nc != 1 || nh != h || nw != w || (nb != 1 && nb != b) {
-            bail!(
-                "noise {:?} does not fit features {:?}",
-                noise.dims(),
-                y.dims()
-            );
-        }
-        if weight.elem_count() != 1 {
-            bail!("noise weight must hold one value, got {:?}", weight.dims());
-        }
-        if in_place(&y, &[noise, weight]) {
-            y.inplace_op3(noise, weight, &NoiseLeakyRelu)?;
-            Ok(y)
-        } else {
-            let n = noise.broadcast_mul(&weight.reshape((1, 1, 1, 1))?)?;
-            crate::layers::leaky_relu(&y.broadcast_add(&n)?, SLOPE)
-        }
-    }
-
-    trait Elem:
-        Copy
-        + Send
-        + Sync
-        + PartialOrd
-        + std::ops::Add<Output = Self>
-        + std::ops::Mul<Output = Self>
-    {
-        const SLOPE: Self;
-    }
-    impl Elem for f32 {
-        const SLOPE: Self = 0.2;
-    }
-    impl Elem for f64 {
-        const SLOPE: Self = 0.2;
-    }
-
-    #[inline(always)]
-    fn leaky<T: Elem>(v: T) -> T {
-        // As `max(v, 0.2 v)`, the expression of the tracked path.
-        let s = v * T::SLOPE;
-        if v > s {
-            v
-        } else {
-            s
-        }
-    }
-
-    fn slice<'a, T>(v: &'a [T], l: &Layout) -> Result<&'a [T]> {
-        match l.contiguous_offsets() {
-            Some((a, b)) => Ok(&v[a..b]),
-            None => bail!("fused op needs contiguous operands"),
-        }
-    }
-
-    fn slice_mut<'a, T>(v: &'a mut [T], l: &Layout) -> Result<&'a mut [T]> {
-        match l.contiguous_offsets() {
-            Some((a, b)) => Ok(&mut v[a..b]),
-            None => bail!("fused op needs contiguous operands"),
-        }
-    }
-
-    struct LeakyRelu;
-    impl InplaceOp1 for LeakyRelu {
-        fn name(&self) -> &'static str {
-            "leaky-relu-inplace"
-        }
-        fn cpu_fwd(&self, s: &mut CpuStorage, l: &Layout) -> Result<()> {
-            fn run<T: Elem>(d: &mut [T]) {
-                d.par_chunks_mut(CHUNK)
-                    .for_each(|c| c.iter_mut().for_each(|v| *v = leaky(*v)));
-            }
-            match s {
-                CpuStorage::F32(v) => run(slice_mut(v, l)?),
-                CpuStorage::F64(v) => run(slice_mut(v, l)?),
-                _ => bail!("leaky-relu-inplace: f32 and f64 only"),
-            }
-            Ok(())
-        }
-    }
-
-    struct AddInto;
-    impl InplaceOp2 for AddInto {
-        fn name(&self) -> &'static str {
-            "add-inplace"
-        }
-        fn cpu_fwd(
-            &self,
-            s1: &mut CpuStorage,
-            l1: &Layout,
-            s2: &CpuStorage,
-            l2: &Layout,
-        ) -> Result<()> {
-            fn run<T: Elem>(d: &mut [T], a: &[T]) {
-                d.par_chunks_mut(CHUNK)
-                    .zip(a.par_chunks(CHUNK))
-                    .for_each(|(d, a)| d.iter_mut().zip(a).for_each(|(d, &a)| *d = *d + a));
-            }
-            match (s1, s2) {
-                (CpuStorage::F32(d), CpuStorage::F32(a)) => run(slice_mut(d, l1)?, slice(a, l2)?),
-                (CpuStorage::F64(d), CpuStorage::F64(a)) => run(slice_mut(d, l1)?, slice(a, l2)?),
-                _ => bail!("add-inplace: matching f32 or f64 operands only"),
-            }
-            Ok(())
-        }
-    }
-
-    struct Sft;
-    impl InplaceOp3 for Sft {
-        fn name(&self) -> &'static str {
-            "sft-inplace"
-        }
-        fn cpu_fwd(
-            &self,
-            s1: &mut CpuStorage,
-            l1: &Layout,
-            s2: &CpuStorage,
-            l2: &Layout,
-            s3: &CpuStorage,
-            l3: &Layout,
-        ) -> Result<()> {
-            fn run<T: Elem>(d: &mut [T], scale: &[T], shift: &[T]) {
-                d.par_chunks_mut(CHUNK)
-                    .zip(scale.par_chunks(CHUNK).zip(shift.par_chunks(CHUNK)))
-                    .for_each(|(d, (a, b))| {
-                        for ((d, &a), &b) in d.iter_mut().zip(a).zip(b) {
-                            *d = *d * a + b;
-                        }
-                    });
-            }
-            match (s1, s2, s3) {
-                (CpuStorage::F32(d), CpuStorage::F32(a), CpuStorage::F32(b)) => {
-                    run(slice_mut(d, l1)?, slice(a, l2)?, slice(b, l3)?)
-                }
-                (CpuStorage::F64(d), CpuStorage::F64(a), CpuStorage::F64(b)) => {
-                    run(slice_mut(d, l1)?, slice(a, l2)?, slice(b, l3)?)
-                }
-                _ => bail!("sft-inplace: matching f32 or f64 operands only"),
-            }
-            Ok(())
-        }
-    }
-
-    struct NoiseLeakyRelu;
-    impl InplaceOp3 for NoiseLeakyRelu {
-        fn name(&self) -> &'static str {
-            "noise-leaky-relu-inplace"
-        }
-        fn cpu_fwd(
-            &self,
-            s1: &mut CpuStorage,
-            l1: &Layout,
-            s2: &CpuStorage,
-            l2: &Layout,
-            s3: &CpuStorage,
-            l3: &Layout,
-        ) -> Result<()> {
-            let (b, c, h, w) = l1.shape().dims4()?;
-            let plane = h * w;
-            let noise_batch = l2.shape().dims()[0];
-            fn run<T: Elem>(
-                d: &mut [T],
-                noise: &[T],
-                weight: T,
-                c: usize,
-                plane: usize,
-                per_sample: bool,
-            ) {
-                d.par_chunks_mut(plane).enumerate().for_each(|(p, d)| {
-                    let n = if per_sample {
-                        &noise[(p / c) * plane..][..plane]
-                    } else {
-                        &noise[..plane]
-                    };
-                    for (d, &n) in d.iter_mut().zip(n) {
-                        *d = leaky(*d + weight * n);
-                    }
-                });
-            }
-            let per_sample = noise_batch == b && b > 1;
-            if plane == 0 || c == 0 {
-                return Ok(());
-            }
-            match (s1, s2, s3) {
-                (CpuStorage::F32(d), CpuStorage::F32(n), CpuStorage::F32(wt)) => {
-                    let wt = slice(wt, l3)?[0];
-                    run(slice_mut(d, l1)?, slice(n, l2)?, wt, c, plane, per_sample)
-                }
-                (CpuStorage::F64(d), CpuStorage::F64(n), CpuStorage::F64(wt)) => {
-                    let wt = slice(wt, l3)?[0];
-                    run(slice_mut(d, l1)?, slice(n, l2)?, wt, c, plane, per_sample)
-                }
-                _ => bail!("noise-leaky-relu-inplace: matching f32 or f64 operands only"),
-            }
-            Ok(())
-        }
     }
 }
 

@@ -2,6 +2,8 @@
 //! kernels (f32 and f64): Winograd F(4x4, 3x3) for 3x3 stride-1 layers, banded implicit-im2col
 //! GEMM for everything else. Other devices and dtypes fall back to candle's `conv2d`.
 
+mod bf16;
+pub use bf16::Bf16Conv;
 pub(crate) mod elem;
 pub use elem::{active_simd_level, limit_simd};
 mod geom;

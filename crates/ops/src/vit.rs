@@ -21,7 +21,15 @@ pub fn layer_norm(x: &Tensor, weight: &Tensor, bias: &Tensor, eps: f64) -> Resul
 /// `softmax(q k^T) v` over contiguous f32 `[heads, N, d]` (q already scaled); see
 /// [`ATTN_ROWS`].
 pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
-    q.apply_op3_no_bwd(k, v, &AttentionOp)
+    q.apply_op3_no_bwd(k, v, &AttentionOp { bf16: false })
+}
+
+/// [`attention`] with both products in bf16 (f32 sums, f32 softmax): `--precision bf16`.
+pub fn attention_bf16(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
+    crate::bf16::Precision::Bf16
+        .check()
+        .map_err(candle_core::Error::wrap)?;
+    q.apply_op3_no_bwd(k, v, &AttentionOp { bf16: true })
 }
 
 /// Exact (erf) GELU, `x (1 + erf(x / sqrt 2)) / 2`, f32 or f64.
@@ -111,7 +119,10 @@ pub const ATTN_ROWS: usize = 128;
 /// Inference attention `softmax(q k^T) v` over contiguous f32 `[heads, N, d]` (q already
 /// scaled), heads in parallel and each head in blocks of [`ATTN_ROWS`] query rows: single-thread
 /// GEMMs on an L2-resident logits block and the in-place row softmax between them.
-struct AttentionOp;
+struct AttentionOp {
+    /// Both products in bf16 (checked available by the constructor).
+    bf16: bool,
+}
 
 impl CustomOp3 for AttentionOp {
     fn name(&self) -> &'static str {
@@ -147,6 +158,10 @@ impl CustomOp3 for AttentionOp {
             return Ok((CpuStorage::F32(out), l1.shape().clone()));
         }
         let rows = ATTN_ROWS.min(n);
+        if self.bf16 {
+            attention_bf16_heads(q, k, v, n, d, rows, &mut out);
+            return Ok((CpuStorage::F32(out), l1.shape().clone()));
+        }
         out.par_chunks_mut(n * d).enumerate().for_each_init(
             || vec![0f32; rows * n],
             |logits, (h, out_h)| {
@@ -214,6 +229,62 @@ impl CustomOp3 for AttentionOp {
         );
         Ok((CpuStorage::F32(out), l1.shape().clone()))
     }
+}
+
+/// The bf16 form of [`AttentionOp`]'s loop: per head, k and v packed once, then per block of
+/// query rows the logits GEMM, the f32 softmax and the value GEMM.
+fn attention_bf16_heads(
+    q: &[f32],
+    k: &[f32],
+    v: &[f32],
+    n: usize,
+    d: usize,
+    rows: usize,
+    out: &mut [f32],
+) {
+    use crate::bf16::{self as kernel, Bias};
+    #[derive(Default)]
+    struct Scratch {
+        logits: Vec<f32>,
+        kt: Vec<u32>,
+        vp: Vec<u32>,
+        a: Vec<u32>,
+    }
+    out.par_chunks_mut(n * d)
+        .enumerate()
+        .for_each_init(Scratch::default, |s, (h, out_h)| {
+            let head = h * n * d..(h + 1) * n * d;
+            let (qh, kh, vh) = (&q[head.clone()], &k[head.clone()], &v[head]);
+            kernel::pack_b_transposed(kh, n, d, &mut s.kt);
+            s.logits.resize(rows * n, 0.0);
+            // SAFETY: `attention_bf16` checked the CPU; each GEMM gets a live operand of the
+            // extents given (q block r x d, k^T d x n, logits r x n, v n x d, out r x d), and
+            // its destination is this task's own buffer.
+            unsafe {
+                kernel::pack_b_rows(vh, n, d, d, &mut s.vp);
+                for (b, out_b) in out_h.chunks_mut(rows * d).enumerate() {
+                    let r = out_b.len() / d;
+                    let lg = &mut s.logits[..r * n];
+                    kernel::convert_rows(&qh[b * rows * d..][..r * d], r, d, &mut s.a);
+                    let dp = d.div_ceil(2);
+                    kernel::gemm(&s.a, r, dp, &s.kt, n, lg.as_mut_ptr(), n, Bias::None, false);
+                    rows::softmax(lg, n);
+                    kernel::convert_rows(lg, r, n, &mut s.a);
+                    let np = n.div_ceil(2);
+                    kernel::gemm(
+                        &s.a,
+                        r,
+                        np,
+                        &s.vp,
+                        d,
+                        out_b.as_mut_ptr(),
+                        d,
+                        Bias::None,
+                        false,
+                    );
+                }
+            }
+        });
 }
 
 struct GeluErfOp;
@@ -578,5 +649,84 @@ mod rows {
             layer_norm_body(&x, &mut slow, n, &w, &b, 1e-6);
             assert_eq!(fast, slow, "layer norm");
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bf16::round_bf16;
+    use candle_core::Device;
+
+    /// bf16 attention against an f64 attention of the same rounded q and k: the probabilities
+    /// are rounded to bf16 before the value product (relative 2^-9 each, averaging out over
+    /// the row), so the output moves by well under 1% of max |v|.
+    const BF16_ATTENTION_TOL: f64 = 5e-3;
+
+    fn values(n: usize, seed: u64) -> Vec<f32> {
+        let mut s = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
+        (0..n)
+            .map(|_| {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+            })
+            .collect()
+    }
+
+    #[test]
+    fn bf16_attention_matches_f64_attention() -> Result<()> {
+        if !gagavatar_testkit::bf16_or_skip("bf16_attention_matches_f64_attention") {
+            return Ok(());
+        }
+        // Two heads, an odd token count across two query blocks, an odd head width.
+        let (h, n, d) = (2, ATTN_ROWS + 77, 15);
+        let (qv, kv, vv) = (
+            values(h * n * d, 1),
+            values(h * n * d, 2),
+            values(h * n * d, 3),
+        );
+        // Logits of a few units, as a scaled ViT's are.
+        let qv: Vec<f32> = qv.iter().map(|x| 3.0 * x).collect();
+        let dev = Device::Cpu;
+        let t = |v: &[f32]| Tensor::from_vec(v.to_vec(), (h, n, d), &dev);
+        let got: Vec<f32> = attention_bf16(&t(&qv)?, &t(&kv)?, &t(&vv)?)?
+            .flatten_all()?
+            .to_vec1()?;
+        let mut worst = (0, 0.0, 0.0);
+        for hh in 0..h {
+            for i in 0..n {
+                let at = |x: &[f32], r: usize, c: usize| x[(hh * n + r) * d + c];
+                let logits: Vec<f64> = (0..n)
+                    .map(|j| {
+                        (0..d)
+                            .map(|c| {
+                                round_bf16(at(&qv, i, c)) as f64 * round_bf16(at(&kv, j, c)) as f64
+                            })
+                            .sum()
+                    })
+                    .collect();
+                let max = logits.iter().cloned().fold(f64::MIN, f64::max);
+                let e: Vec<f64> = logits.iter().map(|l| (l - max).exp()).collect();
+                let sum: f64 = e.iter().sum();
+                for c in 0..d {
+                    let want: f64 = (0..n).map(|j| e[j] / sum * at(&vv, j, c) as f64).sum();
+                    let o = (hh * n + i) * d + c;
+                    let diff = (got[o] as f64 - want).abs();
+                    if diff.is_nan() || diff > worst.1 {
+                        worst = (o, diff, want);
+                    }
+                }
+            }
+        }
+        assert!(
+            worst.1 <= BF16_ATTENTION_TOL,
+            "at {}: expected {}, got {} (tolerance {BF16_ATTENTION_TOL})",
+            worst.0,
+            worst.2,
+            got[worst.0]
+        );
+        Ok(())
     }
 }

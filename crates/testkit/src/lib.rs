@@ -17,6 +17,9 @@ pub const REQUIRE_FFMPEG: &str = "GAGAVATAR_REQUIRE_FFMPEG";
 /// Set to make a missing Vulkan device a failure instead of a skip.
 pub const REQUIRE_GPU: &str = "GAGAVATAR_REQUIRE_GPU_TESTS";
 
+/// Set to make a missing AVX512-BF16 (the `--precision bf16` kernels) a failure instead of a skip.
+pub const REQUIRE_BF16: &str = "GAGAVATAR_REQUIRE_BF16";
+
 /// Whether the run requires the path guarded by `var` (set, and not `0`).
 pub fn required(var: &str) -> bool {
     std::env::var_os(var).is_some_and(|v| v != "0")
@@ -55,6 +58,30 @@ pub fn avx512_or_skip(test: &str) -> bool {
         has_avx512(),
         "this CPU has no AVX-512F",
         REQUIRE_AVX512,
+    )
+}
+
+/// Whether this CPU runs the bf16 kernels (AVX512F, AVX512BW and AVX512-BF16).
+pub fn has_bf16() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512bw")
+            && std::arch::is_x86_feature_detected!("avx512bf16")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// The gate of a test of the bf16 kernels (see [`optional_path`]).
+pub fn bf16_or_skip(test: &str) -> bool {
+    optional_path(
+        test,
+        has_bf16(),
+        "this CPU has no AVX512-BF16",
+        REQUIRE_BF16,
     )
 }
 

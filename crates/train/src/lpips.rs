@@ -146,11 +146,11 @@ impl Lpips {
                 let prep = |t: &Tensor| -> Result<Tensor> {
                     Ok(t.to_dtype(DType::F32)?.to_device(device)?)
                 };
-                convs.push(Conv2d {
-                    weight: prep(w)?,
-                    bias: Some(prep(b)?),
-                    spec: Conv2dSpec { stride, padding },
-                });
+                convs.push(Conv2d::from_parts(
+                    prep(w)?,
+                    Some(prep(b)?),
+                    Conv2dSpec { stride, padding },
+                ));
                 lins.push(prep(l)?);
             }
             cin = cout;

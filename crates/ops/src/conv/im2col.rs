@@ -10,12 +10,12 @@ use rayon::prelude::*;
 
 /// Patch-matrix budget per band in elements (~1 MiB of f32): big enough that the GEMM's
 /// per-call packing is amortised, small enough to stay in the core's L2 for the packing read.
-const COL_ELEMS: usize = 256 * 1024;
+pub(super) const COL_ELEMS: usize = 256 * 1024;
 /// Fewer output pixels per GEMM than this make its micro-kernels run mostly on edges.
 const MIN_BAND_PX: usize = 256;
 
 /// Rows of output per band: about `col_elems` patch-matrix entries each, balanced over threads.
-fn band_rows(g: &Geom, k: usize, col_elems: usize, threads: usize) -> usize {
+pub(super) fn band_rows(g: &Geom, k: usize, col_elems: usize, threads: usize) -> usize {
     let px = (col_elems / k.max(1)).max(MIN_BAND_PX);
     let min_rows = MIN_BAND_PX.div_ceil(2 * g.ow).max(1);
     balanced_chunk(g.oh, px.div_ceil(g.ow), g.b, threads, min_rows)
@@ -45,7 +45,7 @@ fn in_row(g: &Geom, r: usize, ky: usize) -> Option<usize> {
 
 /// Patch matrix `[c*kh*kw, (r1-r0)*ow]` of output rows `[r0, r1)` of the `c` channel planes
 /// in `xb` (all of an image's, or a range of them).
-fn im2col_band<T: Elem>(xb: &[T], g: &Geom, r0: usize, r1: usize, col: &mut [T]) {
+pub(super) fn im2col_band<T: Elem>(xb: &[T], g: &Geom, r0: usize, r1: usize, col: &mut [T]) {
     let nb = (r1 - r0) * g.ow;
     let (s, w) = (g.stride, g.w);
     let mut kk = 0;
@@ -118,7 +118,7 @@ fn col2im_band<T: Elem>(
 }
 
 /// A 1x1 stride-1 unpadded convolution needs no patch matrix: the input is the matrix.
-fn is_pointwise(g: &Geom) -> bool {
+pub(super) fn is_pointwise(g: &Geom) -> bool {
     g.kh == 1 && g.kw == 1 && g.stride == 1 && g.ph == 0 && g.pw == 0
 }
 

@@ -130,7 +130,7 @@ fn input_tiles_any<T: Elem>(
 
 /// [`output_tiles`], by the AVX-512 f32 kernel when it applies.
 #[allow(clippy::too_many_arguments)]
-fn output_tiles_any<T: Elem>(
+pub(super) fn output_tiles_any<T: Elem>(
     m: &[T],
     slab: usize,
     off: usize,
@@ -283,18 +283,18 @@ multiversion! {
 }
 
 /// How the tile rows of a call are split into tasks.
-struct Partition {
-    th: usize,
-    tw: usize,
+pub(super) struct Partition {
+    pub th: usize,
+    pub tw: usize,
     rows_per_task: usize,
     nbands: usize,
     tasks: usize,
     /// Threads each GEMM may use: 1 when there are enough tasks to go round.
-    inner: usize,
+    pub inner: usize,
 }
 
 impl Partition {
-    fn new(g: &Geom) -> Self {
+    pub(super) fn new(g: &Geom) -> Self {
         let (th, tw) = (g.oh.div_ceil(4), g.ow.div_ceil(4));
         let threads = rayon::current_num_threads();
         let rows_per_task = balanced_chunk(th, TILES_PER_TASK.div_ceil(tw), g.b, threads, 1);
@@ -312,14 +312,14 @@ impl Partition {
     }
 
     /// Image and tile rows `[ty0, ty1)` of a task.
-    fn task(&self, task: usize) -> (usize, usize, usize) {
+    pub(super) fn task(&self, task: usize) -> (usize, usize, usize) {
         let (bi, band) = (task / self.nbands, task % self.nbands);
         let ty0 = band * self.rows_per_task;
         (bi, ty0, (ty0 + self.rows_per_task).min(self.th))
     }
 
     /// Runs `run(scratch, task)` for every task, in parallel when there are enough.
-    fn run<S: Default + Send, F: Fn(&mut S, usize) + Sync + Send>(&self, run: F) {
+    pub(super) fn run<S: Default + Send, F: Fn(&mut S, usize) + Sync + Send>(&self, run: F) {
         if self.inner == 1 {
             (0..self.tasks)
                 .into_par_iter()
@@ -340,7 +340,7 @@ struct Scratch<T> {
 }
 
 /// `V[xi][ci][t]` for the tiles of tile rows `[ty0, ty1)` of image `xb`.
-fn transform_input_band<T: Elem>(
+pub(super) fn transform_input_band<T: Elem>(
     xb: &[T],
     g: &Geom,
     tw: usize,
