@@ -128,6 +128,8 @@ class Engine:
 
     `flame=None` uses the asset the weights name (the built-in synthetic one for the demo model;
     the release's weights need `FLAME_with_eye.pt`). `device` is `cpu`, `gpu` or `auto`.
+    `precision` is the CPU model's arithmetic: `f32` (the release's) or `bf16` (bf16 products
+    with f32 sums; faster on CPUs with AVX512-BF16, an `Error` on others).
     """
 
     def __init__(
@@ -137,6 +139,7 @@ class Engine:
         device: str = "cpu",
         preset: Optional[str] = None,
         fresh_noise: bool = False,
+        precision: str = "f32",
     ):
         self._e = _native.Engine(
             os.fspath(ckpt),
@@ -144,12 +147,13 @@ class Engine:
             device,
             preset,
             fresh_noise,
+            precision,
         )
 
     @classmethod
-    def demo(cls, device: str = "cpu") -> "Engine":
+    def demo(cls, device: str = "cpu", precision: str = "f32") -> "Engine":
         """The shipped demo model (the `tiny` preset trained on synthetic heads)."""
-        return cls(demo_file("weights.safetensors"), device=device)
+        return cls(demo_file("weights.safetensors"), device=device, precision=precision)
 
     @property
     def image_size(self) -> int:

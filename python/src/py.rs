@@ -94,7 +94,7 @@ pub struct Engine {
 #[pymethods]
 impl Engine {
     #[new]
-    #[pyo3(signature = (ckpt, flame=None, device="cpu", preset=None, fresh_noise=false))]
+    #[pyo3(signature = (ckpt, flame=None, device="cpu", preset=None, fresh_noise=false, precision="f32"))]
     fn new(
         py: Python<'_>,
         ckpt: PathBuf,
@@ -102,7 +102,9 @@ impl Engine {
         device: &str,
         preset: Option<String>,
         fresh_noise: bool,
+        precision: &str,
     ) -> PyResult<Self> {
+        let precision: gagavatar_avatar::Precision = precision.parse().map_err(bad)?;
         let device = match device {
             "cpu" => DeviceChoice::Cpu,
             "gpu" => DeviceChoice::Gpu,
@@ -118,6 +120,7 @@ impl Engine {
             .as_deref()
             .map_or(FlameSource::FromWeights, FlameSource::from_arg);
         cfg.preset = preset;
+        cfg.precision = precision;
         cfg.noise = if fresh_noise {
             Noise::Fresh
         } else {

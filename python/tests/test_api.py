@@ -116,6 +116,7 @@ def test_bad_inputs_raise_one_line_errors(engine, source, tmp_path):
     cases = [
         lambda: ga.Engine(tmp_path / "missing.pt"),
         lambda: ga.Engine(DEMO / "weights.safetensors", device="tpu"),
+        lambda: ga.Engine(DEMO / "weights.safetensors", precision="fp8"),
         lambda: ga.Engine(DEMO / "weights.safetensors", flame=tmp_path / "no_flame.pt"),
         lambda: engine.avatar(np.zeros((8, 8), np.uint8), source),
         lambda: engine.avatar(DEMO / "source.png", {k: v for k, v in source.items()
@@ -137,6 +138,22 @@ def test_bad_inputs_raise_one_line_errors(engine, source, tmp_path):
         av.render_codes(np.zeros(500))
     with pytest.raises(ga.Error, match="not finite"):
         av.render_codes(camera=np.full((3, 4), np.nan))
+
+
+def test_bf16_renders_close_to_f32(avatar, source):
+    """`precision="bf16"`: the same frame within bf16's rounding (the library's test bounds it),
+    or one clear error on a CPU without AVX512-BF16."""
+    flags = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""
+    if "avx512_bf16" not in flags or "avx512bw" not in flags:
+        with pytest.raises(ga.Error, match="AVX512-BF16"):
+            ga.Engine.demo(precision="bf16")
+        return
+    low = ga.Engine.demo(precision="bf16").avatar(DEMO / "source.png", source)
+    a = avatar.render(source, watermark=False)[0].astype(np.int16)
+    b = low.render(source, watermark=False)[0].astype(np.int16)
+    assert a.shape == b.shape
+    assert np.abs(a - b).max() <= 6
+    assert (a != b).any(), "bf16 changed no byte: is it running?"
 
 
 def test_the_gpu_drive_matches_the_cpu(source):
