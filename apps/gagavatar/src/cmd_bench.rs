@@ -411,26 +411,49 @@ fn bench_model(args: ModelBench) -> Result<()> {
         println!("  peak RSS               {mib:>9.0} MiB");
     }
     if args.precision != gagavatar_ops::Precision::F32 {
-        let fine = |model: &GagAvatar| -> Result<Vec<f32>> {
+        // The fine image end to end, and the renderer alone on a fixed pattern (the input
+        // `tools/reference/bench_torch.py --weights` gives PyTorch, so the two compare).
+        let pattern = render_pattern(cfg.color_dim, size, &dev)?;
+        let outputs = |model: &GagAvatar| -> Result<[Vec<f32>; 2]> {
             pool.install(|| {
                 let avatar = model.reconstruct(&image, &tm)?;
                 let coarse = model.splat_coarse(&avatar, &verts, &tm)?;
-                Ok(model
-                    .render(&coarse, Noise::Fixed)?
-                    .flatten_all()?
-                    .to_vec1()?)
+                let fine = model.render(&coarse, Noise::Fixed)?;
+                let alone = model.render(&pattern, Noise::Fixed)?;
+                Ok([
+                    fine.flatten_all()?.to_vec1()?,
+                    alone.flatten_all()?.to_vec1()?,
+                ])
             })
         };
-        let low = fine(&model)?;
+        let low = outputs(&model)?;
         model.set_precision(gagavatar_ops::Precision::F32)?;
-        let full = fine(&model)?;
-        let (max_abs, psnr) = image_difference(&low, &full);
-        println!(
-            "  fine image, {} against f32: max abs {max_abs:.2e}, PSNR {psnr:.1} dB (values in [0, 1])",
-            args.precision.name()
-        );
+        let full = outputs(&model)?;
+        let p = args.precision.name();
+        for (what, (a, b)) in ["fine image (end to end)", "renderer alone (pattern)"]
+            .iter()
+            .zip(low.iter().zip(&full))
+        {
+            let (max_abs, psnr) = image_difference(a, b);
+            println!("  {what}, {p} against f32: max abs {max_abs:.2e}, PSNR {psnr:.1} dB");
+        }
     }
     Ok(())
+}
+
+/// The renderer input of the precision comparison: `0.5 + 0.5 sin(0.05 (c + 1) x + 0.07 y +
+/// 0.3 c)` in channel c, row y, column x (`bench_torch.py` builds the same).
+fn render_pattern(channels: usize, size: usize, dev: &Device) -> Result<Tensor> {
+    let mut v = Vec::with_capacity(channels * size * size);
+    for c in 0..channels {
+        for y in 0..size {
+            for x in 0..size {
+                let a = 0.05 * (c + 1) as f64 * x as f64 + 0.07 * y as f64 + 0.3 * c as f64;
+                v.push((0.5 + 0.5 * a.sin()) as f32);
+            }
+        }
+    }
+    Ok(Tensor::from_vec(v, (1, channels, size, size), dev)?)
 }
 
 /// Largest absolute difference and PSNR (peak 1) of two images in [0, 1].
