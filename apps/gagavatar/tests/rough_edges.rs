@@ -277,3 +277,47 @@ fn an_empty_training_config_names_the_missing_keys() {
     let out = run(&["train", "--help"]);
     assert!(out.status.success());
 }
+
+/// `--precision bf16` on a CPU without AVX512-BF16 (simulated by `GAGAVATAR_NO_BF16`): one
+/// line that names what is missing and the way out, before any weights load; where the CPU has
+/// them, the same command writes its output.
+#[test]
+fn bf16_without_the_instructions_is_one_line() {
+    let f = Fixture::new("bf16_line");
+    let out = f.s("a.ply");
+    let args = f.avatar_args("export-ply", &[], &["--precision", "bf16", "-o", &out]);
+    let res = std::process::Command::new(env!("CARGO_BIN_EXE_gagavatar"))
+        .args(&args)
+        .env("GAGAVATAR_NO_BF16", "1")
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&res.stderr);
+    assert!(!res.status.success(), "{log}");
+    let lines: Vec<&str> = log.lines().collect();
+    assert_eq!(lines.len(), 1, "{log}");
+    assert!(
+        lines[0].starts_with("error: ")
+            && lines[0].contains("AVX512-BF16")
+            && lines[0].contains("f32"),
+        "{log}"
+    );
+    assert!(!std::path::Path::new(&out).exists());
+    let bad = run(&strs(&f.avatar_args(
+        "export-ply",
+        &[],
+        &["--precision", "fp8", "-o", &out],
+    )));
+    let log = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        !bad.status.success() && log.contains("`fp8` (f32 or bf16)"),
+        "{log}"
+    );
+    if gagavatar_testkit::bf16_or_skip("bf16_without_the_instructions_is_one_line") {
+        ok(&strs(&f.avatar_args(
+            "export-ply",
+            &[],
+            &["--precision", "bf16", "-o", &out],
+        )));
+        assert!(std::path::Path::new(&out).is_file());
+    }
+}

@@ -38,8 +38,14 @@ pub enum Bf16Error {
     Shape(String),
 }
 
-/// Whether this CPU runs the bf16 kernels.
+/// Whether this CPU runs the bf16 kernels. `GAGAVATAR_NO_BF16` (any value) says no, to try
+/// what a CPU without them does.
 pub fn available() -> bool {
+    static AVAILABLE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *AVAILABLE.get_or_init(|| std::env::var_os("GAGAVATAR_NO_BF16").is_none() && detected())
+}
+
+fn detected() -> bool {
     #[cfg(target_arch = "x86_64")]
     {
         std::arch::is_x86_feature_detected!("avx512f")
