@@ -1,6 +1,6 @@
 //! Convolution with bf16 products and f32 sums (`--precision bf16`, see [`crate::bf16`]),
 //! inference only (no backward). The banded im2col GEMM runs on the bf16 kernel; the layers
-//! the f32 path gives to Winograd F(4x4, 3x3) stay on it, in f32. Rounding Winograd's
+//! the f32 path gives to Winograd F(4x4, 3x3) stay on it, in f32 (the same op as `conv2d`). Rounding Winograd's
 //! transformed tiles to bf16 was tried and measured: its inverse transform (coefficients up to
 //! 8) amplifies the rounding to 2.6% RMS of the output (7.8% worst of `conv(|x|, |w|)`), ten
 //! times a bf16 GEMM's, while im2col in bf16 does 4x the multiplies of Winograd at 2x the rate,
@@ -18,28 +18,28 @@ use super::{im2col, use_winograd, winograd, ConvAlgo};
 use crate::bf16::{self as kernel, Bf16Error, Bias};
 use crate::storage::contiguous;
 
-/// A convolution weight prepared for bf16 products, converted on first use per algorithm and
-/// kept: pack a layer once and reuse it every frame.
+/// A convolution prepared for bf16 products: the weight is rounded and packed for the im2col
+/// GEMM on first use and kept, so pack a layer once and reuse it every frame. Layers that run
+/// Winograd run the f32 convolution on the same (shared, not copied) weight tensor.
 #[derive(Debug, Clone)]
 pub struct Bf16Conv {
-    weight: Arc<Vec<f32>>,
-    bias: Option<Arc<Vec<f32>>>,
+    weight: Tensor,
+    bias: Option<Tensor>,
+    bias_values: Option<Arc<Vec<f32>>>,
     dims: [usize; 4],
     spec: Conv2dSpec,
     /// `[cout, K]` pair words (K = cin kh kw) for the im2col GEMM.
     gemm: Arc<OnceLock<Vec<u32>>>,
-    /// `[36, cout, cin]` Winograd-transformed f32 weight (3x3 layers that run Winograd).
-    wino: Arc<OnceLock<Vec<f32>>>,
 }
 
 impl Bf16Conv {
-    /// `weight` [cout, cin, kh, kw], `bias` [cout], f32 (any device: copied to host memory).
+    /// `weight` [cout, cin, kh, kw], `bias` [cout], f32.
     pub fn new(weight: &Tensor, bias: Option<&Tensor>, spec: Conv2dSpec) -> Result<Self> {
         if !kernel::available() {
             return Err(candle_core::Error::wrap(Bf16Error::Unsupported));
         }
         let (cout, cin, kh, kw) = weight.dims4()?;
-        let bias = match bias {
+        let bias_values = match bias {
             Some(b) => {
                 let b: Vec<f32> = b.flatten_all()?.to_vec1()?;
                 if b.len() != cout {
@@ -53,32 +53,34 @@ impl Bf16Conv {
             None => None,
         };
         Ok(Self {
-            weight: Arc::new(weight.flatten_all()?.to_vec1()?),
-            bias,
+            weight: weight.clone(),
+            bias: bias.cloned(),
+            bias_values,
             dims: [cout, cin, kh, kw],
             spec,
             gemm: Arc::default(),
-            wino: Arc::default(),
         })
     }
 
     /// `x` [B, cin, H, W] f32 on the CPU -> [B, cout, OH, OW].
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        x.contiguous()?.apply_op1_no_bwd(self)
-    }
-
-    fn gemm_words(&self) -> &[u32] {
-        self.gemm.get_or_init(|| {
+        let g = Geom::new(x.dims(), &self.dims, self.spec)?;
+        if use_winograd(&g, ConvAlgo::Auto) && winograd::eligible(&g) {
+            return super::conv2d_with_algo(
+                x,
+                &self.weight,
+                self.bias.as_ref(),
+                self.spec,
+                ConvAlgo::Winograd,
+            );
+        }
+        if self.gemm.get().is_none() {
             let [cout, cin, kh, kw] = self.dims;
-            rows_to_words(&self.weight, cout, cin * kh * kw)
-        })
-    }
-
-    fn wino_weights(&self) -> &[f32] {
-        self.wino.get_or_init(|| {
-            let [cout, cin, ..] = self.dims;
-            winograd::transform_weights(&self.weight, cout, cin)
-        })
+            let w: Vec<f32> = self.weight.flatten_all()?.to_vec1()?;
+            // A concurrent first call may have set it meanwhile; both computed the same words.
+            let _ = self.gemm.set(rows_to_words(&w, cout, cin * kh * kw));
+        }
+        x.contiguous()?.apply_op1_no_bwd(self)
     }
 }
 
@@ -111,13 +113,12 @@ impl CustomOp1 for Bf16Conv {
         };
         let x = contiguous(data, l, "bf16 conv", "input")?;
         let g = Geom::new(l.dims(), &self.dims, self.spec)?;
+        let Some(words) = self.gemm.get() else {
+            bail!("bf16 conv: the weight was not packed (call `forward`)");
+        };
         let mut y = vec![0f32; g.b * g.cout * g.oh * g.ow];
-        let bias = self.bias.as_deref().map(|b| b.as_slice());
-        if use_winograd(&g, ConvAlgo::Auto) && winograd::eligible(&g) {
-            winograd::forward(x, self.wino_weights(), bias, &g, &mut y);
-        } else {
-            gemm_forward(x, self.gemm_words(), bias, &g, &mut y);
-        }
+        let bias = self.bias_values.as_deref().map(|b| b.as_slice());
+        gemm_forward(x, words, bias, &g, &mut y);
         Ok((CpuStorage::F32(y), Shape::from((g.b, g.cout, g.oh, g.ow))))
     }
 }
