@@ -135,6 +135,25 @@ fn env_algo() -> Option<ConvAlgo> {
 const WINOGRAD_MIN_TILES: usize = 128;
 const WINOGRAD_MIN_CHANNELS: usize = 8;
 
+impl Bf16Conv {
+    /// `x` [B, cin, H, W] f32 on the CPU -> [B, cout, OH, OW]: bf16 products where the layer
+    /// runs the im2col GEMM, the f32 Winograd op (same weight tensor) where it runs Winograd.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let g = Geom::new(x.dims(), &self.dims, self.spec)?;
+        if use_winograd(&g, ConvAlgo::Auto) && winograd::eligible(&g) {
+            conv2d_with_algo(
+                x,
+                &self.weight,
+                self.bias.as_ref(),
+                self.spec,
+                ConvAlgo::Winograd,
+            )
+        } else {
+            self.gemm_forward(x)
+        }
+    }
+}
+
 fn use_winograd(g: &Geom, algo: ConvAlgo) -> bool {
     match algo {
         ConvAlgo::Winograd => true,

@@ -14,7 +14,7 @@ use rayon::prelude::*;
 
 use super::elem::SendPtr;
 use super::geom::{Conv2dSpec, Geom};
-use super::{im2col, use_winograd, winograd, ConvAlgo};
+use super::im2col;
 use crate::bf16::{self as kernel, Bf16Error, Bias};
 use crate::storage::contiguous;
 
@@ -23,11 +23,11 @@ use crate::storage::contiguous;
 /// Winograd run the f32 convolution on the same (shared, not copied) weight tensor.
 #[derive(Debug, Clone)]
 pub struct Bf16Conv {
-    weight: Tensor,
-    bias: Option<Tensor>,
+    pub(super) weight: Tensor,
+    pub(super) bias: Option<Tensor>,
     bias_values: Option<Arc<Vec<f32>>>,
-    dims: [usize; 4],
-    spec: Conv2dSpec,
+    pub(super) dims: [usize; 4],
+    pub(super) spec: Conv2dSpec,
     /// `[cout, K]` pair words (K = cin kh kw) for the im2col GEMM.
     gemm: Arc<OnceLock<Vec<u32>>>,
 }
@@ -62,18 +62,8 @@ impl Bf16Conv {
         })
     }
 
-    /// `x` [B, cin, H, W] f32 on the CPU -> [B, cout, OH, OW].
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let g = Geom::new(x.dims(), &self.dims, self.spec)?;
-        if use_winograd(&g, ConvAlgo::Auto) && winograd::eligible(&g) {
-            return super::conv2d_with_algo(
-                x,
-                &self.weight,
-                self.bias.as_ref(),
-                self.spec,
-                ConvAlgo::Winograd,
-            );
-        }
+    /// The im2col path: packs the weight on first use, then runs the bf16 GEMM op.
+    pub(super) fn gemm_forward(&self, x: &Tensor) -> Result<Tensor> {
         if self.gemm.get().is_none() {
             let [cout, cin, kh, kw] = self.dims;
             let w: Vec<f32> = self.weight.flatten_all()?.to_vec1()?;
@@ -169,6 +159,7 @@ fn gemm_forward(x: &[f32], w: &[u32], bias: Option<&[f32]>, g: &Geom, y: &mut [f
 mod tests {
     use super::*;
     use crate::bf16::round_bf16;
+    use crate::conv::{use_winograd, winograd, ConvAlgo};
     use candle_core::Device;
 
     /// The GEMM path multiplies exactly the bf16-rounded operands and sums in f32: against an
