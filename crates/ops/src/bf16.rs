@@ -524,7 +524,7 @@ impl CustomOp1 for Bf16Linear {
                 self.weight.k
             );
         }
-        let m = x.len().checked_div(k).unwrap_or(0);
+        let m: usize = dims[..dims.len().saturating_sub(1)].iter().product();
         let a = Bf16Rows::from_f32(x, m, k).map_err(candle_core::Error::wrap)?;
         let mut out = vec![0f32; m * self.weight.n];
         let bias = match &self.bias {
@@ -758,6 +758,47 @@ mod tests {
         for (p, &w) in rows.words.iter().enumerate() {
             assert_eq!(w, pair(a[2 * p], a[2 * p + 1]), "pair {p}");
         }
+    }
+
+    #[test]
+    fn linear_keeps_leading_dims_and_matches_the_product() -> candle_core::Result<()> {
+        if !gagavatar_testkit::bf16_or_skip("linear_keeps_leading_dims_and_matches_the_product") {
+            return Ok(());
+        }
+        let dev = candle_core::Device::Cpu;
+        let mut r = rng(11);
+        let (k, n) = (37, 45);
+        let x: Vec<f32> = (0..2 * 3 * k).map(|_| r()).collect();
+        let w: Vec<f32> = (0..n * k).map(|_| r()).collect();
+        let b: Vec<f32> = (0..n).map(|_| r()).collect();
+        let lin = Bf16Linear::new(
+            &Tensor::from_vec(w.clone(), (n, k), &dev)?,
+            Some(&Tensor::from_vec(b.clone(), n, &dev)?),
+        )?;
+        let y = lin.forward(&Tensor::from_vec(x.clone(), (2, 3, k), &dev)?)?;
+        assert_eq!(y.dims(), &[2, 3, n]);
+        let y: Vec<f32> = y.flatten_all()?.to_vec1()?;
+        for row in 0..6 {
+            for j in 0..n {
+                let mut want = b[j] as f64;
+                let mut mag = b[j].abs() as f64;
+                for kk in 0..k {
+                    let p = round_bf16(x[row * k + kk]) as f64 * round_bf16(w[j * k + kk]) as f64;
+                    want += p;
+                    mag += p.abs();
+                }
+                let got = y[row * n + j] as f64;
+                assert!(
+                    (got - want).abs() <= ACCUMULATION_TOL * mag.max(1.0),
+                    "row {row}, column {j}: expected {want}, got {got}"
+                );
+            }
+        }
+        // A wrong input width is an error, not a panic.
+        assert!(lin
+            .forward(&Tensor::zeros((4, k + 1), candle_core::DType::F32, &dev)?)
+            .is_err());
+        Ok(())
     }
 
     #[test]
