@@ -53,7 +53,8 @@ pub struct SourceArgs {
     #[arg(long)]
     pub fresh_noise: bool,
     /// Arithmetic of the model's products on the CPU: f32 (the release's) or bf16 (bf16
-    /// operands, f32 sums; ~1.3x faster, needs AVX512-BF16: AMD Zen 4, Intel Sapphire Rapids).
+    /// operands, f32 sums; reconstruct ~1.3x faster; needs AVX512-BF16: AMD Zen 4, Intel
+    /// Sapphire Rapids).
     #[arg(long, default_value = "f32")]
     pub precision: gagavatar_ops::Precision,
 }
