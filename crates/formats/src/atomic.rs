@@ -82,18 +82,50 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FormatError> {
 /// non-empty one); if the second rename fails the old one is moved back.
 pub fn replace_dir(tmp: &Path, dir: &Path) -> std::io::Result<()> {
     pause_before_rename();
+    // Writers of one folder at the same moment (two requests tracking the same photo into the
+    // cache) can interleave the renames below; each collision is retried, and the folder of
+    // the last writer stays.
+    let mut collision = None;
+    for _ in 0..RACE_RETRIES {
+        match replace_once(tmp, dir) {
+            Ok(()) => return Ok(()),
+            Err(e) if collided(&e) => collision = Some(e),
+            Err(e) => return Err(e),
+        }
+    }
+    Err(collision.unwrap_or_else(|| std::io::Error::other("replacing the folder kept colliding")))
+}
+
+/// Attempts of [`replace_dir`] when another writer of the same folder gets in between.
+const RACE_RETRIES: usize = 16;
+
+/// The errors a concurrent writer of the same folder causes: it appeared (renaming onto a
+/// non-empty folder) or vanished (moved away by the other writer) between our steps.
+fn collided(e: &std::io::Error) -> bool {
+    use std::io::ErrorKind;
+    matches!(
+        e.kind(),
+        ErrorKind::NotFound | ErrorKind::AlreadyExists | ErrorKind::DirectoryNotEmpty
+    )
+}
+
+fn replace_once(tmp: &Path, dir: &Path) -> std::io::Result<()> {
+    if !tmp.is_dir() {
+        // Not a collision: our own folder is missing.
+        return Err(std::io::Error::other(format!("{} is gone", tmp.display())));
+    }
     if !dir.exists() {
         return std::fs::rename(tmp, dir);
     }
     let mut old = temp_sibling(dir).into_os_string();
     old.push(".old");
     let old = PathBuf::from(old);
-    if old.exists() {
-        std::fs::remove_dir_all(&old)?;
-    }
     std::fs::rename(dir, &old)?;
     if let Err(e) = std::fs::rename(tmp, dir) {
-        let _ = std::fs::rename(&old, dir);
+        // Put the old folder back; if another writer's folder took its place, that one stays.
+        if std::fs::rename(&old, dir).is_err() {
+            let _ = std::fs::remove_dir_all(&old);
+        }
         return Err(e);
     }
     // The new data is in place; failing to delete the old copy loses nothing.
@@ -104,6 +136,39 @@ pub fn replace_dir(tmp: &Path, dir: &Path) -> std::io::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn concurrent_writers_of_one_folder_all_succeed() {
+        let root = std::env::temp_dir().join(format!("gagavatar-race-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        std::fs::create_dir_all(&root).unwrap();
+        let dir = root.join("cached");
+        let threads: Vec<_> = (0..8)
+            .map(|i| {
+                let dir = dir.clone();
+                std::thread::spawn(move || {
+                    for round in 0..20 {
+                        let tmp = temp_sibling(&dir);
+                        std::fs::create_dir_all(&tmp).unwrap();
+                        std::fs::write(tmp.join("data"), format!("{i} {round}")).unwrap();
+                        replace_dir(&tmp, &dir)
+                            .unwrap_or_else(|e| panic!("writer {i}, round {round}: {e}"));
+                    }
+                })
+            })
+            .collect();
+        for t in threads {
+            t.join().unwrap();
+        }
+        // One complete folder, and nothing else left beside it.
+        assert!(dir.join("data").is_file());
+        let left: Vec<_> = std::fs::read_dir(&root)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(left, vec![std::ffi::OsString::from("cached")], "{left:?}");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
 
     #[test]
     fn write_atomic_replaces_and_leaves_no_temp() {
