@@ -22,6 +22,7 @@ use gagavatar_ops::Precision;
 use gagavatar_ops::{resize, ResizeMode};
 
 use crate::config::ModelConfig;
+use crate::layers::packed_linear;
 
 /// DINOv2's LayerNorm epsilon (not PyTorch's default 1e-5).
 const LN_EPS: f64 = 1e-6;
@@ -91,18 +92,7 @@ impl Linear {
     }
 
     fn set_precision(&mut self, precision: Precision) -> Result<()> {
-        self.bf16 = match precision {
-            Precision::F32 => None,
-            Precision::Bf16 => {
-                if self.is_live() {
-                    bail!("bf16 precision is for inference; this ViT's weights are trainable");
-                }
-                Some(Arc::new(Bf16Linear::new(
-                    &self.weight()?,
-                    Some(&self.bias),
-                )?))
-            }
-        };
+        self.bf16 = packed_linear(precision, &self.weight()?, Some(&self.bias))?;
         Ok(())
     }
 

@@ -11,22 +11,7 @@ use gagavatar_ops::bf16::Bf16Linear;
 use gagavatar_ops::{resize, Precision, ResizeMode};
 
 use crate::config::ModelConfig;
-use crate::layers::{fixed, Conv2d};
-
-/// `weight` [out, in] and `bias` packed for bf16 products under `Precision::Bf16`.
-fn packed_linear(
-    precision: Precision,
-    weight: &Tensor,
-    bias: Option<&Tensor>,
-) -> Result<Option<Arc<Bf16Linear>>> {
-    Ok(match precision {
-        Precision::F32 => None,
-        Precision::Bf16 => {
-            fixed(weight)?;
-            Some(Arc::new(Bf16Linear::new(weight, bias)?))
-        }
-    })
-}
+use crate::layers::{packed_linear, Conv2d};
 
 /// `x + conv2(relu(conv1(relu(x))))`; the release's ReLUs are not in place, so `x` is kept.
 #[derive(Debug, Clone)]

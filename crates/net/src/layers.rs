@@ -91,6 +91,22 @@ pub fn fixed(weight: &Tensor) -> Result<()> {
     Ok(())
 }
 
+/// `weight` [out, in] and `bias` packed for bf16 products under `Precision::Bf16` (fixed
+/// weights only), nothing under `Precision::F32`.
+pub fn packed_linear(
+    precision: Precision,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+) -> Result<Option<std::sync::Arc<Bf16Linear>>> {
+    Ok(match precision {
+        Precision::F32 => None,
+        Precision::Bf16 => {
+            fixed(weight)?;
+            Some(std::sync::Arc::new(Bf16Linear::new(weight, bias)?))
+        }
+    })
+}
+
 /// `nn.Linear` (`y = x W^T + b` over the last dim) that can run its product in bf16.
 #[derive(Debug, Clone)]
 pub struct Linear {
@@ -114,16 +130,7 @@ impl Linear {
 
     /// Switches between f32 and bf16 products (bf16: fixed weights only, inference).
     pub fn set_precision(&mut self, precision: Precision) -> Result<()> {
-        self.bf16 = match precision {
-            Precision::F32 => None,
-            Precision::Bf16 => {
-                fixed(self.inner.weight())?;
-                Some(std::sync::Arc::new(Bf16Linear::new(
-                    self.inner.weight(),
-                    self.inner.bias(),
-                )?))
-            }
-        };
+        self.bf16 = packed_linear(precision, self.inner.weight(), self.inner.bias())?;
         Ok(())
     }
 

@@ -162,7 +162,9 @@ impl PackedB {
                 w.len()
             )));
         }
-        Ok(Self::pack(n, k, |kk, c| w[c * k + kk]))
+        let mut words = Vec::new();
+        pack_b_transposed(w, n, k, &mut words, true);
+        Ok(Self { k, n, words })
     }
 
     /// Packs `b` [k, n] row-major.
@@ -178,30 +180,6 @@ impl PackedB {
         // SAFETY: `available()` was checked above.
         unsafe { pack_b_rows(b, k, n, n, &mut words) };
         Ok(Self { k, n, words })
-    }
-
-    fn pack(n: usize, k: usize, at: impl Fn(usize, usize) -> f32 + Sync) -> Self {
-        let kp = k.div_ceil(2);
-        let panels = n.div_ceil(NR);
-        let mut words = vec![0u32; panels * kp * NR];
-        if kp > 0 {
-            words
-                .par_chunks_mut(kp * NR)
-                .enumerate()
-                .for_each(|(panel, dst)| {
-                    for (p, row) in dst.chunks_exact_mut(NR).enumerate() {
-                        for (lane, word) in row.iter_mut().enumerate() {
-                            let c = panel * NR + lane;
-                            if c < n {
-                                let lo = at(2 * p, c);
-                                let hi = if 2 * p + 1 < k { at(2 * p + 1, c) } else { 0.0 };
-                                *word = pair(lo, hi);
-                            }
-                        }
-                    }
-                });
-        }
-        Self { k, n, words }
     }
 
     /// K.
@@ -354,12 +332,16 @@ pub(crate) unsafe fn gemm(
     }
 }
 
-/// Packs `B = W^T` for `w` [n, k] row-major into B panels in `dst` (resized).
-pub(crate) fn pack_b_transposed(w: &[f32], n: usize, k: usize, dst: &mut Vec<u32>) {
+/// Packs `B = W^T` for `w` [n, k] row-major into B panels in `dst` (resized); panels in
+/// parallel when `parallel` (a weight packed once at load), else on this thread.
+pub(crate) fn pack_b_transposed(w: &[f32], n: usize, k: usize, dst: &mut Vec<u32>, parallel: bool) {
     let kp = k.div_ceil(2);
     dst.clear();
     dst.resize(n.div_ceil(NR) * kp * NR, 0);
-    for (panel, words) in dst.chunks_exact_mut((kp * NR).max(1)).enumerate() {
+    if kp == 0 {
+        return;
+    }
+    let panel = |(panel, words): (usize, &mut [u32])| {
         for (p, row) in words.chunks_exact_mut(NR).enumerate() {
             for (lane, word) in row.iter_mut().enumerate() {
                 let c = panel * NR + lane;
@@ -369,6 +351,11 @@ pub(crate) fn pack_b_transposed(w: &[f32], n: usize, k: usize, dst: &mut Vec<u32
                 }
             }
         }
+    };
+    if parallel {
+        dst.par_chunks_mut(kp * NR).enumerate().for_each(panel);
+    } else {
+        dst.chunks_mut(kp * NR).enumerate().for_each(panel);
     }
 }
 
@@ -663,15 +650,7 @@ mod tests {
     /// accumulation differs, so the error is a few f32 ulps of the sum of magnitudes.
     const ACCUMULATION_TOL: f64 = 1e-5;
 
-    fn rng(seed: u64) -> impl FnMut() -> f32 {
-        let mut s = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
-        move || {
-            s ^= s << 13;
-            s ^= s >> 7;
-            s ^= s << 17;
-            ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-        }
-    }
+    use gagavatar_testkit::uniform_values;
 
     #[test]
     fn rounding_is_nearest_even() {
@@ -709,10 +688,10 @@ mod tests {
             (25, 128, 96),
             (3, 3, 5),
         ] {
-            let mut r = rng((m * 1000 + k * 10 + n) as u64);
-            let a: Vec<f32> = (0..m * k).map(|_| r()).collect();
-            let w: Vec<f32> = (0..n * k).map(|_| r()).collect();
-            let bias: Vec<f32> = (0..n).map(|_| r()).collect();
+            let seed = (m * 1000 + k * 10 + n) as u64;
+            let a = uniform_values(m * k, seed);
+            let w = uniform_values(n * k, seed + 1);
+            let bias = uniform_values(n, seed + 2);
             let ar = Bf16Rows::from_f32(&a, m, k).unwrap();
             let bt = PackedB::from_transposed(&w, n, k).unwrap();
             let mut c = vec![f32::NAN; m * n];
@@ -747,9 +726,11 @@ mod tests {
         if !gagavatar_testkit::bf16_or_skip("vector_and_scalar_rounding_agree") {
             return;
         }
-        let mut r = rng(7);
+        let r = uniform_values(96, 7);
         // Magnitudes from tiny to huge, plus exact halfway cases.
-        let mut a: Vec<f32> = (0..96).map(|i| r() * 10f32.powi(i % 12 - 6)).collect();
+        let mut a: Vec<f32> = (0..96)
+            .map(|i| r[i as usize] * 10f32.powi(i % 12 - 6))
+            .collect();
         a[5] = 1.0 + 1.0 / 256.0;
         a[6] = 1.0 + 3.0 / 256.0;
         a[7] = -1e-40;
@@ -766,11 +747,11 @@ mod tests {
             return Ok(());
         }
         let dev = candle_core::Device::Cpu;
-        let mut r = rng(11);
+
         let (k, n) = (37, 45);
-        let x: Vec<f32> = (0..2 * 3 * k).map(|_| r()).collect();
-        let w: Vec<f32> = (0..n * k).map(|_| r()).collect();
-        let b: Vec<f32> = (0..n).map(|_| r()).collect();
+        let x = uniform_values(2 * 3 * k, 11);
+        let w = uniform_values(n * k, 12);
+        let b = uniform_values(n, 13);
         let lin = Bf16Linear::new(
             &Tensor::from_vec(w.clone(), (n, k), &dev)?,
             Some(&Tensor::from_vec(b.clone(), n, &dev)?),

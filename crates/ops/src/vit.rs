@@ -255,7 +255,7 @@ fn attention_bf16_heads(
         .for_each_init(Scratch::default, |s, (h, out_h)| {
             let head = h * n * d..(h + 1) * n * d;
             let (qh, kh, vh) = (&q[head.clone()], &k[head.clone()], &v[head]);
-            kernel::pack_b_transposed(kh, n, d, &mut s.kt);
+            kernel::pack_b_transposed(kh, n, d, &mut s.kt, false);
             s.logits.resize(rows * n, 0.0);
             // SAFETY: `attention_bf16` checked the CPU; each GEMM gets a live operand of the
             // extents given (q block r x d, k^T d x n, logits r x n, v n x d, out r x d), and
@@ -657,23 +657,12 @@ mod tests {
     use super::*;
     use crate::bf16::round_bf16;
     use candle_core::Device;
+    use gagavatar_testkit::uniform_values as values;
 
     /// bf16 attention against an f64 attention of the same rounded q and k: the probabilities
     /// are rounded to bf16 before the value product (relative 2^-9 each, averaging out over
     /// the row), so the output moves by well under 1% of max |v|.
     const BF16_ATTENTION_TOL: f64 = 5e-3;
-
-    fn values(n: usize, seed: u64) -> Vec<f32> {
-        let mut s = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
-        (0..n)
-            .map(|_| {
-                s ^= s << 13;
-                s ^= s >> 7;
-                s ^= s << 17;
-                ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-            })
-            .collect()
-    }
 
     #[test]
     fn bf16_attention_matches_f64_attention() -> Result<()> {

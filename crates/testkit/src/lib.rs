@@ -85,6 +85,19 @@ pub fn bf16_or_skip(test: &str) -> bool {
     )
 }
 
+/// `n` deterministic values in [-1, 1) from `seed` (xorshift64), so a failing case reproduces.
+pub fn uniform_values(n: usize, seed: u64) -> Vec<f32> {
+    let mut s = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
+    (0..n)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+        })
+        .collect()
+}
+
 /// `a.max(b)`, but NaN when either is NaN: the step of a NaN-keeping fold,
 /// `iter.fold(0.0, max_or_nan)`, where `f64::max` would drop the NaN.
 pub fn max_or_nan(a: f64, b: f64) -> f64 {

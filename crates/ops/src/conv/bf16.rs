@@ -161,6 +161,7 @@ mod tests {
     use crate::bf16::round_bf16;
     use crate::conv::{use_winograd, winograd, ConvAlgo};
     use candle_core::Device;
+    use gagavatar_testkit::uniform_values as values;
 
     /// The GEMM path multiplies exactly the bf16-rounded operands and sums in f32: against an
     /// f64 sum of the same products, a few f32 ulps of `conv(|x|, |w|)`.
@@ -208,18 +209,6 @@ mod tests {
             }
         }
         (y, mag)
-    }
-
-    fn values(n: usize, seed: u64) -> Vec<f32> {
-        let mut s = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
-        (0..n)
-            .map(|_| {
-                s ^= s << 13;
-                s ^= s >> 7;
-                s ^= s << 17;
-                ((s >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-            })
-            .collect()
     }
 
     /// Worst `|got - want| / mag` and where.
