@@ -1,19 +1,35 @@
 #!/bin/bash
 # The GPU check of issues 30/31, in one device call (see tools/device/README.md):
-# adapter facts, the GPU parity tests on a real driver (release size included) and
-# `bench drive` at release size, everything written to $OUT.
+# adapter facts, the GPU parity tests on a real driver (release size included, their measured
+# maxima printed), `bench drive` at release size for both Gaussian regimes, and a sweep of
+# convolution tilings (GAGAVATAR_GPU_TUNE, no rebuild), everything written to $OUT: a
+# summary.txt to read, one JSON per bench run (bench_*.json) and check.json gathering them.
 #
 # Prepared here by tools/device/prepare.sh (stripped, gzipped binaries in .dev/, Vulkan loader
 # debs in .gl/); run there with carry [".gl", ".dev"]:
 #   bash tools/device/gpu_check.sh
 set -u
-# FRAMES, PRESET and TESTS (a test-name filter) shrink the run for a dry run on lavapipe.
+# FRAMES, SWEEP_FRAMES, PRESET and TESTS (a test-name filter) shrink the run for a dry run on
+# lavapipe; SKIP_TESTS=1 leaves the parity tests out.
 FRAMES=${FRAMES:-300}
+SWEEP_FRAMES=${SWEEP_FRAMES:-40}
 PRESET=${PRESET:-release}
 TESTS=${TESTS:-}
 OUT=${OUT:-/tmp/gpu_check_out}
 mkdir -p "$OUT"
 log() { echo "== $*" | tee -a "$OUT/summary.txt"; }
+
+# Convolution tilings to time (keys of crates/gpu/src/tuning.rs); "" is the default.
+TUNES=(
+    ""
+    "conv_bm=64"
+    "conv_bm=128"
+    "conv_bm=64,conv_bk=32"
+    "conv_bm=64,conv_bn=64,conv_tm=4,conv_tn=4"
+    "conv_bm=64,conv_small_bm=64,conv_small_bn=32,conv_small_tm=4,conv_small_tn=4"
+    "conv_bm=64,conv_split_k=0"
+    "conv_bm=64,conv_split_k=1152"
+)
 
 # The Vulkan loader (the machine has the NVIDIA driver but may lack the loader).
 if ! ldconfig -p | grep -q libvulkan.so.1; then
@@ -38,17 +54,47 @@ log "adapter"
 nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm --format=csv > "$OUT/nvidia_smi.csv" 2>&1
 cat "$OUT/nvidia_smi.csv" >> "$OUT/summary.txt"
 
-log "bench drive, release, 300 frames, small and large Gaussians"
+log "bench drive, $PRESET, $FRAMES frames, small and large Gaussians"
 for regime in small large; do
     timeout 150 .dev/gagavatar bench drive --device gpu --preset "$PRESET" --frames "$FRAMES" \
-        --regime "$regime" > "$OUT/bench_drive_$regime.txt" 2>&1
+        --regime "$regime" --json "$OUT/bench_$regime.json" > "$OUT/bench_drive_$regime.txt" 2>&1
     echo "exit $? ($regime)" >> "$OUT/summary.txt"
     tail -25 "$OUT/bench_drive_$regime.txt" >> "$OUT/summary.txt"
 done
 
-log "GPU parity tests (every one, release size included)"
-GAGAVATAR_REQUIRE_GPU_TESTS=1 timeout 240 .dev/gpu_tests $TESTS --include-ignored --test-threads 1 \
-    > "$OUT/gpu_tests.txt" 2>&1
-echo "exit $?" >> "$OUT/summary.txt"
-grep -E "^test |test result" "$OUT/gpu_tests.txt" >> "$OUT/summary.txt"
+if [ "${SKIP_TESTS:-0}" != 1 ]; then
+    log "GPU parity tests (every one, release size included)"
+    GAGAVATAR_REQUIRE_GPU_TESTS=1 timeout 240 .dev/gpu_tests $TESTS --include-ignored \
+        --test-threads 1 --nocapture > "$OUT/gpu_tests.txt" 2>&1
+    echo "exit $?" >> "$OUT/summary.txt"
+    grep -E "^test |test result|max abs|within|panicked|differ" "$OUT/gpu_tests.txt" >> "$OUT/summary.txt"
+fi
+
+log "convolution tilings, $SWEEP_FRAMES frames each"
+i=0
+for tune in "${TUNES[@]}"; do
+    GAGAVATAR_GPU_TUNE="$tune" timeout 90 .dev/gagavatar bench drive --device gpu \
+        --preset "$PRESET" --frames "$SWEEP_FRAMES" --json "$OUT/bench_tune_$i.json" \
+        > "$OUT/bench_tune_$i.txt" 2>&1
+    rc=$?
+    fps=$(grep -o '= [0-9.]* frames/s' "$OUT/bench_tune_$i.txt")
+    unet=$(grep -o 'U-Net + SFT *[0-9.]* ms' "$OUT/bench_tune_$i.txt")
+    dec=$(grep -o 'mapping + decoder *[0-9.]* ms' "$OUT/bench_tune_$i.txt")
+    echo "tune $i [${tune:-default}] exit $rc $fps; $unet; $dec" >> "$OUT/summary.txt"
+    i=$((i + 1))
+done
+
+# One JSON of everything the benches wrote.
+{
+    echo "{"
+    first=1
+    for f in "$OUT"/bench_*.json; do
+        [ -f "$f" ] || continue
+        [ $first = 1 ] || echo ","
+        first=0
+        printf '"%s": ' "$(basename "$f" .json)"
+        cat "$f"
+    done
+    echo "}"
+} > "$OUT/check.json"
 log "done"

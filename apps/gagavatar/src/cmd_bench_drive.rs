@@ -40,6 +40,10 @@ pub struct DriveBench {
     /// CPU worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Also write the figures as JSON (adapter features, per-stage ms, frame ms, frames/s,
+    /// GPU memory, tuning) to this file; GPU only.
+    #[arg(long)]
+    json: Option<std::path::PathBuf>,
 }
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -124,6 +128,9 @@ pub fn bench_drive(a: DriveBench) -> Result<()> {
     });
     std::env::set_var("RAYON_NUM_THREADS", threads.to_string());
     let gpu = a.device.open()?;
+    if gpu.is_none() && a.json.is_some() {
+        anyhow::bail!("bench drive --json is for the GPU drive (--device gpu)");
+    }
     let t0 = Instant::now();
     let renderer = renderer(&cfg, a.ckpt.as_deref())?;
     let avatar = bench_avatar(&cfg, regime)?;
@@ -257,10 +264,12 @@ fn bench_gpu(
         }
     );
     let mut device_total = 0.0;
+    let mut stage_json = serde_json::Map::new();
     for (k, name) in STAGES.iter().enumerate() {
         let m = median(&mut per_stage[k]);
         device_total += m;
         println!("    {name:<30} {m:>9.2} ms");
+        stage_json.insert(name.to_string(), m.into());
     }
     println!("    {:<30} {device_total:>9.2} ms", "sum");
     // (median sorts, so the first and last are the fastest and slowest frames)
@@ -271,11 +280,45 @@ fn bench_gpu(
         wall.last().copied().unwrap_or(f64::NAN),
         1e3 / med
     );
+    let mib = g.allocated_bytes() as f64 / (1 << 20) as f64;
     println!(
-        "  GPU buffers allocated: {:.0} MiB; (tile, Gaussian) pair capacity {}",
-        g.allocated_bytes() as f64 / (1 << 20) as f64,
+        "  GPU buffers allocated: {mib:.0} MiB; (tile, Gaussian) pair capacity {}",
         drive.pair_capacity()
     );
+    if let Some(path) = &a.json {
+        let doc = serde_json::json!({
+            "adapter": {
+                "description": desc,
+                "emulated": emulated,
+                "shader_f16": has(wgpu_features::Features::SHADER_F16),
+                "subgroups": has(wgpu_features::Features::SUBGROUP),
+                "timestamps": has(wgpu_features::Features::TIMESTAMP_QUERY),
+                "cooperative_matrices": coop,
+            },
+            "preset": cfg.name,
+            "image_size": cfg.image_size,
+            "gaussians": n_gauss,
+            "regime": format!("{:?}", a.regime).to_lowercase(),
+            "tuning": format!("{tuning:?}"),
+            "upload_ms": 1e3 * upload.as_secs_f64(),
+            "first_frame_ms": 1e3 * first.as_secs_f64(),
+            "stage_ms": stage_json,
+            "stage_ms_from": if timestamps { "timestamps" } else { "submit-and-wait" },
+            "stage_sum_ms": device_total,
+            "frames": frames,
+            "frame_ms": {
+                "median": med,
+                "min": wall.first().copied(),
+                "max": wall.last().copied(),
+            },
+            "frames_per_s": 1e3 / med,
+            "gpu_buffers_mib": mib,
+            "pair_capacity": drive.pair_capacity(),
+        });
+        let text = serde_json::to_string_pretty(&doc)? + "\n";
+        gagavatar_formats::atomic::write_atomic(path, text.as_bytes())
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
     Ok(())
 }
 
