@@ -377,7 +377,11 @@ fn build_avatar(
     let avatar = lined(engine.avatar(img, record))?;
     let drive = match gpu {
         Some(g) => {
-            let tuning = lined(gagavatar_gpu::Tuning::from_env())?;
+            // f16 tensor-core convolutions where the GPU has them, as the CLI's default.
+            let tuning = lined(
+                gagavatar_gpu::Tuning::from_env()
+                    .and_then(|t| t.with_precision(gagavatar_gpu::GpuPrecision::Auto, &g)),
+            )?;
             Drives::Gpu(Box::new(lined(avatar.gpu_drive(g, &tuning))?))
         }
         None => Drives::Cpu(Box::new(avatar.cpu_drive())),

@@ -19,16 +19,17 @@ OUT=${OUT:-/tmp/gpu_check_out}
 mkdir -p "$OUT"
 log() { echo "== $*" | tee -a "$OUT/summary.txt"; }
 
-# Convolution tilings to time (keys of crates/gpu/src/tuning.rs); "" is the default.
+# Convolution precisions and tilings to time, as "precision|tuning" (precision: f32 or f16,
+# the tensor cores; tuning keys of crates/gpu/src/tuning.rs, nothing = the defaults).
 TUNES=(
-    ""
-    "conv_bm=64"
-    "conv_bm=128"
-    "conv_bm=64,conv_bk=32"
-    "conv_bm=64,conv_bn=64,conv_tm=4,conv_tn=4"
-    "conv_bm=64,conv_small_bm=64,conv_small_bn=32,conv_small_tm=4,conv_small_tn=4"
-    "conv_bm=64,conv_split_k=0"
-    "conv_bm=64,conv_split_k=1152"
+    "f32|"
+    "f16|"
+    "f16|mma_bm=128,mma_bn=128,mma_fm=2,mma_fn=2"
+    "f16|mma_bn=128,mma_fn=2"
+    "f16|mma_bk=16"
+    "f16|mma_split_k=288"
+    "f16|mma_small_bn=32"
+    "f32|conv_bm=32,conv_bn=128,conv_tm=8,conv_tn=8,conv_small_bm=64,conv_small_bn=16,conv_small_tm=4,conv_small_tn=2,conv_split_k=576"
 )
 
 # The Vulkan loader (the machine has the NVIDIA driver but may lack the loader).
@@ -54,12 +55,15 @@ log "adapter"
 nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm --format=csv > "$OUT/nvidia_smi.csv" 2>&1
 cat "$OUT/nvidia_smi.csv" >> "$OUT/summary.txt"
 
-log "bench drive, $PRESET, $FRAMES frames, small and large Gaussians"
-for regime in small large; do
-    timeout 150 .dev/gagavatar bench drive --device gpu --preset "$PRESET" --frames "$FRAMES" \
-        --regime "$regime" --json "$OUT/bench_$regime.json" > "$OUT/bench_drive_$regime.txt" 2>&1
-    echo "exit $? ($regime)" >> "$OUT/summary.txt"
-    tail -25 "$OUT/bench_drive_$regime.txt" >> "$OUT/summary.txt"
+log "bench drive, $PRESET, $FRAMES frames: f32 (small and large Gaussians), f16 tensor cores (small)"
+for run in small large f16; do
+    regime=$run precision=f32
+    [ "$run" = f16 ] && regime=small precision=f16
+    timeout 150 .dev/gagavatar bench drive --device gpu --gpu-precision "$precision" \
+        --preset "$PRESET" --frames "$FRAMES" --regime "$regime" --json "$OUT/bench_$run.json" \
+        > "$OUT/bench_drive_$run.txt" 2>&1
+    echo "exit $? ($run)" >> "$OUT/summary.txt"
+    tail -16 "$OUT/bench_drive_$run.txt" >> "$OUT/summary.txt"
 done
 
 if [ "${SKIP_TESTS:-0}" != 1 ]; then
@@ -67,20 +71,22 @@ if [ "${SKIP_TESTS:-0}" != 1 ]; then
     GAGAVATAR_REQUIRE_GPU_TESTS=1 timeout 240 .dev/gpu_tests $TESTS --include-ignored \
         --test-threads 1 --nocapture > "$OUT/gpu_tests.txt" 2>&1
     echo "exit $?" >> "$OUT/summary.txt"
-    grep -E "^test |test result|max abs|within|panicked|differ" "$OUT/gpu_tests.txt" >> "$OUT/summary.txt"
+    grep -E "^test |test result|max abs|mean abs|within|panicked|differ|skipping" "$OUT/gpu_tests.txt" >> "$OUT/summary.txt"
 fi
 
 log "convolution tilings, $SWEEP_FRAMES frames each"
 i=0
-for tune in "${TUNES[@]}"; do
+for entry in "${TUNES[@]}"; do
+    precision=${entry%%|*} tune=${entry#*|}
     GAGAVATAR_GPU_TUNE="$tune" timeout 90 .dev/gagavatar bench drive --device gpu \
-        --preset "$PRESET" --frames "$SWEEP_FRAMES" --json "$OUT/bench_tune_$i.json" \
-        > "$OUT/bench_tune_$i.txt" 2>&1
+        --gpu-precision "$precision" --preset "$PRESET" --frames "$SWEEP_FRAMES" \
+        --json "$OUT/bench_tune_$i.json" > "$OUT/bench_tune_$i.txt" 2>&1
     rc=$?
     fps=$(grep -o '= [0-9.]* frames/s' "$OUT/bench_tune_$i.txt")
     unet=$(grep -o 'U-Net + SFT *[0-9.]* ms' "$OUT/bench_tune_$i.txt")
     dec=$(grep -o 'mapping + decoder *[0-9.]* ms' "$OUT/bench_tune_$i.txt")
-    echo "tune $i [${tune:-default}] exit $rc $fps; $unet; $dec" >> "$OUT/summary.txt"
+    echo "tune $i [$precision ${tune:-defaults}] exit $rc $fps; $unet; $dec" >> "$OUT/summary.txt"
+    [ $rc = 0 ] || tail -3 "$OUT/bench_tune_$i.txt" >> "$OUT/summary.txt"
     i=$((i + 1))
 done
 

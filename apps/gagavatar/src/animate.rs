@@ -253,7 +253,7 @@ impl Session {
             return Ok(());
         };
         let t0 = Instant::now();
-        let tuning = gagavatar_gpu::Tuning::from_env()?;
+        let tuning = device.tuning(&gpu)?;
         self.drive = Box::new(self.avatar.gpu_drive(gpu, &tuning)?);
         self.timings.load += t0.elapsed();
         Ok(())

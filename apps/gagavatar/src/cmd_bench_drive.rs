@@ -179,7 +179,7 @@ fn bench_gpu(
     let frames = a.frames.unwrap_or(300).max(1);
     let emulated = gpu.is_cpu();
     let desc = gpu.describe();
-    let tuning = gagavatar_gpu::Tuning::from_env()?;
+    let tuning = a.device.tuning(&gpu)?;
     let t0 = Instant::now();
     let mut drive = GpuDrive::new(
         gpu,
@@ -246,6 +246,14 @@ fn bench_gpu(
         }
     );
     println!(
+        "  convolutions: {}",
+        if tuning.mma {
+            "tensor cores (f16 inputs, f32 sums)"
+        } else {
+            "f32"
+        }
+    );
+    println!(
         "  {} {}x{}, {n_gauss} Gaussians ({:?} regime), {} channels; upload {:.0} ms, first frame {:.0} ms",
         cfg.name,
         cfg.image_size,
@@ -300,6 +308,7 @@ fn bench_gpu(
             "gaussians": n_gauss,
             "regime": format!("{:?}", a.regime).to_lowercase(),
             "tuning": format!("{tuning:?}"),
+            "tensor_core_convs": tuning.mma,
             "upload_ms": 1e3 * upload.as_secs_f64(),
             "first_frame_ms": 1e3 * first.as_secs_f64(),
             "stage_ms": stage_json,

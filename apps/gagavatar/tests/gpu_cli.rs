@@ -286,3 +286,88 @@ fn no_adapter_is_one_line_for_gpu_and_a_fallback_for_auto() {
     );
     assert!(String::from_utf8_lossy(&out.stdout).contains("drive on the CPU"));
 }
+
+/// `bench drive --json` writes the figures it prints; `--gpu-precision f16` on a GPU without
+/// tensor cores (lavapipe) is one clear line, and f32 / auto render there.
+#[test]
+fn bench_json_and_gpu_precision() {
+    let dir = std::env::temp_dir().join(format!("gagavatar_bench_json_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("bench.json");
+    let json_s = json.to_str().unwrap();
+    let out = run(
+        &[
+            "bench", "drive", "--device", "gpu", "--preset", "tiny", "--frames", "2", "--json",
+            json_s,
+        ],
+        &[],
+    );
+    if !have_gpu(&out) {
+        return;
+    }
+    let doc: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&json).expect("bench.json written")).unwrap();
+    for key in [
+        "adapter",
+        "stage_ms",
+        "frame_ms",
+        "frames_per_s",
+        "gpu_buffers_mib",
+    ] {
+        assert!(doc.get(key).is_some(), "no `{key}` in {doc}");
+    }
+    assert_eq!(doc["frames"], 2);
+    assert!(doc["frames_per_s"].as_f64().unwrap() > 0.0);
+    let stages = doc["stage_ms"].as_object().unwrap();
+    assert!(stages.contains_key("splat: raster"), "{doc}");
+    let tensor_cores = doc["tensor_core_convs"].as_bool().unwrap();
+
+    let f16 = run(
+        &[
+            "bench",
+            "drive",
+            "--device",
+            "gpu",
+            "--preset",
+            "tiny",
+            "--frames",
+            "1",
+            "--gpu-precision",
+            "f16",
+        ],
+        &[],
+    );
+    if tensor_cores {
+        assert!(
+            f16.status.success(),
+            "{}",
+            String::from_utf8_lossy(&f16.stderr)
+        );
+    } else {
+        assert!(
+            !f16.status.success(),
+            "--gpu-precision f16 without tensor cores succeeded"
+        );
+        let err = String::from_utf8_lossy(&f16.stderr);
+        let last = err.lines().rfind(|l| !l.trim().is_empty()).unwrap_or("");
+        assert!(last.contains("tensor cores"), "{err}");
+        assert_eq!(
+            err.lines().filter(|l| l.starts_with("error")).count(),
+            1,
+            "{err}"
+        );
+    }
+    ok(&[
+        "bench",
+        "drive",
+        "--device",
+        "gpu",
+        "--preset",
+        "tiny",
+        "--frames",
+        "1",
+        "--gpu-precision",
+        "f32",
+    ]);
+    let _ = std::fs::remove_dir_all(&dir);
+}

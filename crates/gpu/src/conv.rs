@@ -7,13 +7,15 @@ use std::sync::LazyLock;
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
 use crate::kernel::{linear_grid, Bind, Grid, Params, Step};
-use crate::tuning::{ConvTile, Tuning};
+use crate::tuning::{ConvTile, MmaTile, Tuning};
 
 /// Both convolution shaders end in one shared epilogue.
 fn with_epilogue(src: &str) -> String {
     format!("{src}\n{}", include_str!("shaders/conv_epilogue.wgsl"))
 }
 static CONV: LazyLock<String> = LazyLock::new(|| with_epilogue(include_str!("shaders/conv.wgsl")));
+static CONV_MMA: LazyLock<String> =
+    LazyLock::new(|| with_epilogue(include_str!("shaders/conv_mma.wgsl")));
 static CONV_FINISH: LazyLock<String> =
     LazyLock::new(|| with_epilogue(include_str!("shaders/conv_finish.wgsl")));
 const RESIZE: &str = include_str!("shaders/resize.wgsl");
@@ -127,25 +129,47 @@ fn micro_emit(t: ConvTile) -> String {
 /// count.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ConvPlan {
-    pub tile: ConvTile,
+    pub tile: Tile,
     pub split: u32,
     pub slices: u32,
 }
 
-/// The plan for a layer: the small tile below 32x32 pixels; split-K where the layer's tiles
-/// alone would not fill the device (fewer than 256 workgroups) and the depth is more than
-/// two slices.
+/// Which kernel and tile a convolution runs with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Tile {
+    /// conv.wgsl, f32.
+    Simt(ConvTile),
+    /// conv_mma.wgsl, f16 tensor cores with f32 sums.
+    Mma(MmaTile),
+}
+
+impl Tile {
+    /// Output rows (channels) and columns (pixels) per workgroup, depth step.
+    fn dims(&self) -> (u32, u32, u32) {
+        match self {
+            Tile::Simt(t) => (t.bm, t.bn, t.bk),
+            Tile::Mma(t) => (t.bm, t.bn, t.bk),
+        }
+    }
+}
+
+/// The plan for a layer: the small tile below 32x32 pixels; the tensor-core kernel where
+/// `tuning.mma` (see [`Tuning::for_device`]); split-K where the layer's tiles alone would not
+/// fill the device (fewer than 256 workgroups) and the depth is more than two slices.
 pub fn plan(tuning: &Tuning, cin: usize, cout: usize, h: usize, w: usize, k: usize) -> ConvPlan {
-    let tile = if h * w < 1024 {
-        tuning.conv_small
-    } else {
-        tuning.conv
+    let small = h * w < 1024;
+    let (tile, split) = match (tuning.mma, small) {
+        (false, false) => (Tile::Simt(tuning.conv), tuning.conv_split_k),
+        (false, true) => (Tile::Simt(tuning.conv_small), tuning.conv_split_k),
+        (true, false) => (Tile::Mma(tuning.mma_tile), tuning.mma_split_k),
+        (true, true) => (Tile::Mma(tuning.mma_small), tuning.mma_split_k),
     };
-    let tiles = (h * w).div_ceil(tile.bn as usize) * cout.div_ceil(tile.bm as usize);
+    let (bm, bn, bk) = tile.dims();
+    let tiles = (h * w).div_ceil(bn as usize) * cout.div_ceil(bm as usize);
     let depth = cin * k * k;
-    let split = tuning.conv_split_k as usize;
+    let split = split as usize;
     if split > 0 && tiles < 256 && depth > 2 * split {
-        let split = split.next_multiple_of(tile.bk as usize);
+        let split = split.next_multiple_of(bk as usize);
         ConvPlan {
             tile,
             split: split as u32,
@@ -158,6 +182,119 @@ pub fn plan(tuning: &Tuning, cin: usize, cout: usize, h: usize, w: usize, k: usi
             slices: 1,
         }
     }
+}
+
+/// The generated parts of conv_mma.wgsl for a tile: the accumulators (from zeros in workgroup
+/// memory), one 16-deep step of `fm x fn` multiply-adds, and the sums' way out (each block
+/// stored to the subgroup's staging area, then through the epilogue).
+fn mma_parts(t: MmaTile) -> [(&'static str, String); 3] {
+    let (mut decl, mut step, mut store) = (String::new(), String::new(), String::new());
+    for i in 0..t.fm {
+        step += &format!(
+            "            let a_{i} = coopLoadT<coop_mat16x16<f16, A>>(&As[(wm + {}u) * BK + kk], BK);\n",
+            16 * i
+        );
+    }
+    for j in 0..t.fn_ {
+        step += &format!(
+            "            let b_{j} = coopLoadT<coop_mat16x16<f16, B>>(&Bs[kk * BN + wn + {}u], BN);\n",
+            16 * j
+        );
+    }
+    for i in 0..t.fm {
+        for j in 0..t.fn_ {
+            decl +=
+                &format!("    var c_{i}_{j} = coopLoadT<coop_mat16x16<f32, C>>(&Cs[cs], 16u);\n");
+            step += &format!("            c_{i}_{j} = coopMultiplyAdd(a_{i}, b_{j}, c_{i}_{j});\n");
+            store += &format!(
+                "    workgroupBarrier();\n    coopStoreT(c_{i}_{j}, &Cs[cs], 16u);\n    workgroupBarrier();\n    \
+                 for (var e = lane; e < 256u; e = e + 32u) {{\n        \
+                 emit(m0 + wm + {}u + e / 16u, n0 + wn + {}u + e % 16u, Cs[cs + e], wid.z);\n    }}\n",
+                16 * i,
+                16 * j
+            );
+        }
+    }
+    [("ACC_DECL", decl), ("MMA", step), ("STORE", store)]
+}
+
+/// A convolution's compile-time options (the epilogue's flags, see conv.wgsl).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Options {
+    pub in_scale: bool,
+    pub out_scale: bool,
+    pub bias: bool,
+    pub noise: bool,
+    pub lrelu: bool,
+    pub resid: bool,
+    pub sft: bool,
+    pub sigmoid: bool,
+}
+
+impl Conv<'_> {
+    pub fn options(&self) -> Options {
+        Options {
+            in_scale: self.in_scale.is_some(),
+            out_scale: self.out_scale.is_some(),
+            bias: self.bias.is_some(),
+            noise: self.noise.is_some(),
+            lrelu: self.lrelu,
+            resid: self.residual.is_some(),
+            sft: self.sft.is_some(),
+            sigmoid: self.sigmoid,
+        }
+    }
+}
+
+/// The values substituted into conv.wgsl or conv_mma.wgsl for a tile, kernel size, split-K
+/// depth (0 = none) and options.
+pub fn conv_consts(tile: Tile, k: usize, split: u32, o: Options) -> Vec<(&'static str, String)> {
+    let mut v: Vec<(&str, String)> = match tile {
+        Tile::Simt(t) => vec![
+            ("ACC_DECL", micro_decl(t)),
+            ("MICRO", micro_body(t)),
+            ("EMIT", micro_emit(t)),
+            ("BM", t.bm.to_string()),
+            ("BN", t.bn.to_string()),
+            ("BK", t.bk.to_string()),
+            ("TM", t.tm.to_string()),
+            ("TN", t.tn.to_string()),
+        ],
+        Tile::Mma(t) => {
+            let mut v = mma_parts(t).to_vec();
+            v.extend([
+                ("BM", t.bm.to_string()),
+                ("BN", t.bn.to_string()),
+                ("BK", t.bk.to_string()),
+                ("FM", t.fm.to_string()),
+                ("FN", t.fn_.to_string()),
+            ]);
+            v
+        }
+    };
+    v.extend([
+        ("KSIZE", k.to_string()),
+        ("SPLIT", split.to_string()),
+        ("IN_SCALE", flag(o.in_scale)),
+        ("OUT_SCALE", flag(o.out_scale)),
+        ("BIAS", flag(o.bias)),
+        ("NOISE", flag(o.noise)),
+        ("LRELU", flag(o.lrelu)),
+        ("RESID", flag(o.resid)),
+        ("SFT", flag(o.sft)),
+        ("SIGMOID", flag(o.sigmoid)),
+    ]);
+    v
+}
+
+/// conv_mma.wgsl with its values substituted (for checking it where no device runs it).
+pub fn mma_source(t: MmaTile, k: usize, split: u32, o: Options) -> Result<String> {
+    let body = crate::kernel::substitute(
+        "conv_mma",
+        &CONV_MMA,
+        &conv_consts(Tile::Mma(t), k, split, o),
+    )?;
+    Ok(crate::kernel::module_source(&body))
 }
 
 impl Ops<'_> {
@@ -191,29 +328,13 @@ impl Ops<'_> {
             ));
         }
         let p = plan(self.tuning, c.cin, c.cout, c.h, c.w, c.k);
-        let t = p.tile;
-        let consts = |split: u32| {
-            vec![
-                ("ACC_DECL", micro_decl(t)),
-                ("MICRO", micro_body(t)),
-                ("EMIT", micro_emit(t)),
-                ("KSIZE", c.k.to_string()),
-                ("BM", t.bm.to_string()),
-                ("BN", t.bn.to_string()),
-                ("BK", t.bk.to_string()),
-                ("TM", t.tm.to_string()),
-                ("TN", t.tn.to_string()),
-                ("SPLIT", split.to_string()),
-                ("IN_SCALE", flag(c.in_scale.is_some())),
-                ("OUT_SCALE", flag(c.out_scale.is_some())),
-                ("BIAS", flag(c.bias.is_some())),
-                ("NOISE", flag(c.noise.is_some())),
-                ("LRELU", flag(c.lrelu)),
-                ("RESID", flag(c.residual.is_some())),
-                ("SFT", flag(c.sft.is_some())),
-                ("SIGMOID", flag(c.sigmoid)),
-            ]
+        let (bm, bn, _) = p.tile.dims();
+        let (name, name_split, source): (_, _, &str) = match p.tile {
+            Tile::Simt(_) => ("conv", "conv_split", &CONV),
+            Tile::Mma(_) => ("conv_mma", "conv_mma_split", &CONV_MMA),
         };
+        let opts = c.options();
+        let consts = |split: u32| conv_consts(p.tile, c.k, split, opts);
         let aux = c
             .noise
             .map(|(a, _)| a)
@@ -241,11 +362,11 @@ impl Ops<'_> {
         binds.extend([Bind::Read; 5]);
         binds.push(Bind::ReadWrite);
         let grid_xy = [
-            (c.h * c.w).div_ceil(t.bn as usize) as u32,
-            c.cout.div_ceil(t.bm as usize) as u32,
+            (c.h * c.w).div_ceil(bn as usize) as u32,
+            c.cout.div_ceil(bm as usize) as u32,
         ];
         if p.split == 0 {
-            let k = self.gpu.kernel("conv", &CONV, &consts(0), &binds)?;
+            let k = self.gpu.kernel(name, source, &consts(0), &binds)?;
             let u = self.gpu.uniform("conv", &params(1));
             let g = self.gpu.bind(
                 &k,
@@ -267,7 +388,7 @@ impl Ops<'_> {
         }
         let k = self
             .gpu
-            .kernel("conv_split", &CONV, &consts(p.split), &binds)?;
+            .kernel(name_split, source, &consts(p.split), &binds)?;
         let u = self.gpu.uniform("conv split", &params(p.slices));
         let g = self.gpu.bind(
             &k,
@@ -554,6 +675,107 @@ mod tests {
     #[test]
     fn convolutions_match_a_direct_reference() {
         let Some(g) = gpu() else { return };
+        check_conv_cases(
+            g,
+            &[
+                "",
+                "conv_split_k=48",
+                "conv_bm=16,conv_bn=32,conv_bk=8,conv_tm=4,conv_tn=2,conv_small_bm=32,\
+                 conv_small_bn=8,conv_small_tm=2,conv_small_tn=2",
+            ],
+            LAYER_TOL,
+        );
+    }
+
+    /// The tensor-core kernel (f16 inputs, f32 sums): the same cases, where the device has
+    /// cooperative matrices (not lavapipe: there `mma_kernel_is_valid_wgsl_and_spirv` is what
+    /// checks it).
+    #[test]
+    fn mma_convolutions_match_a_direct_reference() {
+        let Some(g) = gpu() else { return };
+        if !g.mma_f16 {
+            eprintln!(
+                "skipping: {} has no 16x16x16 f16 cooperative matrices",
+                g.describe()
+            );
+            return;
+        }
+        check_conv_cases(
+            g,
+            &[
+                "mma=1",
+                "mma=1,mma_split_k=64",
+                "mma=1,mma_bm=32,mma_bn=64,mma_fm=1,mma_fn=2,mma_small_bm=32,mma_small_bn=16,\
+                 mma_small_fm=1,mma_small_fn=1,mma_bk=16,mma_small_bk=48",
+            ],
+            MMA_TOL,
+        );
+    }
+
+    /// f16 inputs: each product carries two roundings of 2^-11 relative; over up to 576
+    /// products of order 0.1 and the epilogue's scales, a few 1e-3 at worst.
+    const MMA_TOL: f64 = 1e-2;
+
+    /// The generated tensor-core WGSL parses, validates (f16 and cooperative matrices
+    /// allowed) and translates to SPIR-V, for each option and tile shape.
+    #[test]
+    fn mma_kernel_is_valid_wgsl_and_spirv() {
+        use naga::valid::{Capabilities, ValidationFlags, Validator};
+        let all = Options {
+            in_scale: true,
+            out_scale: true,
+            bias: true,
+            noise: true,
+            lrelu: true,
+            resid: false,
+            sft: true,
+            sigmoid: true,
+        };
+        let resid = Options {
+            resid: true,
+            ..Options::default()
+        };
+        let t = Tuning::default();
+        let other = MmaTile {
+            bm: 32,
+            bn: 64,
+            bk: 16,
+            fm: 1,
+            fn_: 2,
+        };
+        let big = MmaTile {
+            bm: 128,
+            bn: 128,
+            bk: 32,
+            fm: 2,
+            fn_: 2,
+        };
+        for (tile, k, split, o) in [
+            (big, 3, 0, all),
+            (t.mma_tile, 3, 0, all),
+            (t.mma_tile, 1, 0, resid),
+            (t.mma_small, 3, 288, Options::default()),
+            (other, 3, 0, all),
+        ] {
+            let src = mma_source(tile, k, split, o).unwrap();
+            let module = naga::front::wgsl::parse_str(&src)
+                .unwrap_or_else(|e| panic!("{tile:?} k{k}: {}", e.emit_to_string(&src)));
+            let caps = Capabilities::SHADER_FLOAT16 | Capabilities::COOPERATIVE_MATRIX;
+            let info = Validator::new(ValidationFlags::all(), caps)
+                .validate(&module)
+                .unwrap_or_else(|e| panic!("{tile:?} k{k}: {}", e.emit_to_string(&src)));
+            let spv = naga::back::spv::write_vec(
+                &module,
+                &info,
+                &naga::back::spv::Options::default(),
+                None,
+            )
+            .unwrap_or_else(|e| panic!("{tile:?} k{k}: SPIR-V: {e}"));
+            assert!(spv.len() > 100, "{tile:?}: {} words of SPIR-V", spv.len());
+        }
+    }
+
+    fn check_conv_cases(g: &Gpu, tunes: &[&str], tol: f64) {
         let mut rng = Rng::new(21);
         let all = Opts {
             bias: true,
@@ -608,9 +830,10 @@ mod tests {
             ),
             (64, 24, 4, 4, 3, all),
         ];
-        for tune in ["", "conv_split_k=48", "conv_bm=16,conv_bn=32,conv_bk=8,conv_tm=4,conv_tn=2,conv_small_bm=32,conv_small_bn=8,conv_small_tm=2,conv_small_tn=2"] {
+        for tune in tunes {
             let mut t = Tuning::default();
             t.apply(tune).unwrap();
+            t.check(&g.limits).unwrap();
             for &(cin, cout, h, w, k, o) in &cases {
                 let hw = h * w;
                 let mut x = vec![0f32; 7];
@@ -666,7 +889,7 @@ mod tests {
                     &format!("conv {cin}->{cout} {h}x{w} k{k} [{tune}]"),
                     &want,
                     &got[5..],
-                    LAYER_TOL,
+                    tol,
                 );
             }
         }

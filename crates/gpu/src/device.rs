@@ -14,6 +14,10 @@ pub use crate::policy::AdapterPolicy;
 /// machine has several), e.g. `GAGAVATAR_GPU_ADAPTER=h200`.
 pub const ADAPTER_ENV: &str = "GAGAVATAR_GPU_ADAPTER";
 
+/// Environment variable: `0` keeps the device from enabling cooperative matrices (and so the
+/// f16 tensor-core convolutions) even where the adapter has them.
+pub const MMA_ENV: &str = "GAGAVATAR_GPU_MMA";
+
 /// The device, its queue and what it supports.
 pub struct Gpu {
     pub device: wgpu::Device,
@@ -24,9 +28,12 @@ pub struct Gpu {
     pub features: wgpu::Features,
     /// Everything the adapter offers (reported by the bench, for the tuning notes).
     pub adapter_features: wgpu::Features,
-    /// Cooperative-matrix (tensor core) shapes the adapter reports; empty when none. Reported
-    /// only: no kernel uses them yet (see crates/gpu/README.md).
+    /// Cooperative-matrix (tensor core) shapes the adapter reports; empty when none.
     pub cooperative_matrices: Vec<wgpu::CooperativeMatrixProperties>,
+    /// Whether the f16 tensor-core convolutions (`conv_mma.wgsl`) can run here: the adapter
+    /// has 16x16x16 f16 x f16 -> f32 cooperative matrices, f16 in shaders and subgroups of
+    /// exactly 32 lanes (the kernel maps one subgroup to each 32 invocations).
+    pub mma_f16: bool,
     pub(crate) kernels: crate::pipelines::KernelCache,
     /// Bytes of the buffers created through [`Gpu::buffer`] and its siblings.
     pub(crate) allocated: std::sync::atomic::AtomicU64,
@@ -131,7 +138,27 @@ impl Gpu {
             | wgpu::Features::SUBGROUP
             | wgpu::Features::TIMESTAMP_QUERY
             | wgpu::Features::TIMESTAMP_QUERY_INSIDE_ENCODERS;
-        let features = adapter_features & wanted;
+        let cooperative_matrices = adapter.cooperative_matrix_properties();
+        let mma_f16 = std::env::var(MMA_ENV).map_or(true, |v| v != "0")
+            && adapter_features.contains(wgpu::Features::SHADER_F16)
+            && adapter_features.contains(wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX)
+            && info.subgroup_min_size == 32
+            && info.subgroup_max_size == 32
+            && cooperative_matrices.iter().any(|c| {
+                (c.m_size, c.n_size, c.k_size) == (16, 16, 16)
+                    && c.ab_type == wgpu::CooperativeScalarType::F16
+                    && c.cr_type == wgpu::CooperativeScalarType::F32
+            });
+        let mut features = adapter_features & wanted;
+        let mut experimental = wgpu::ExperimentalFeatures::disabled();
+        if mma_f16 {
+            features |= wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX;
+            // SAFETY: wgpu marks cooperative matrices experimental (its implementation may
+            // still have bugs); only conv_mma.wgsl uses them, and only where the adapter lists
+            // the one shape it uses. Its results are checked against the CPU on a real GPU by
+            // the mma tests (tools/device/gpu_check.sh); GAGAVATAR_GPU_MMA=0 turns it off.
+            experimental = unsafe { wgpu::ExperimentalFeatures::enabled() };
+        }
         // The adapter's own limits: the renderer's largest buffers (32 channels at 512x512) and
         // bindings exceed WebGPU's defaults on some adapters, never on a real one.
         let limits = adapter.limits();
@@ -139,12 +166,11 @@ impl Gpu {
             label: Some("gagavatar"),
             required_features: features,
             required_limits: limits.clone(),
-            experimental_features: wgpu::ExperimentalFeatures::disabled(),
+            experimental_features: experimental,
             memory_hints: wgpu::MemoryHints::Performance,
             trace: wgpu::Trace::Off,
         }))
         .map_err(|e| GpuError::Device(format!("{}: {e}", describe(&info))))?;
-        let cooperative_matrices = adapter.cooperative_matrix_properties();
         Ok(Self {
             device,
             queue,
@@ -153,6 +179,7 @@ impl Gpu {
             features,
             adapter_features,
             cooperative_matrices,
+            mma_f16,
             kernels: Default::default(),
             allocated: Default::default(),
         })

@@ -127,6 +127,7 @@ impl GpuDrive {
         identity: &FlameIdentity,
         noise: Noise,
     ) -> Result<Self> {
+        let tuning = &tuning.for_device(&gpu);
         tuning.check(&gpu.limits)?;
         if avatar.batch() != 1 {
             return Err(input_err(

@@ -31,6 +31,15 @@ pub fn substitute(name: &str, source: &str, consts: &[(&str, String)]) -> Result
     Ok(s)
 }
 
+/// A kernel's whole WGSL module: its `enable` directives first (WGSL wants them before any
+/// declaration), then common.wgsl, then the rest of its body.
+pub fn module_source(body: &str) -> String {
+    let (enables, rest): (Vec<&str>, Vec<&str>) = body
+        .lines()
+        .partition(|l| l.trim_start().starts_with("enable "));
+    format!("{}\n{COMMON}\n{}", enables.join("\n"), rest.join("\n"))
+}
+
 impl Gpu {
     /// The kernel `name` from WGSL `source` (entry point `main`) with `consts` substituted;
     /// compiled once per distinct source. Compilation errors become [`GpuError::Device`].
@@ -52,7 +61,7 @@ impl Gpu {
             }
             return Ok(k.clone());
         }
-        let code = format!("{COMMON}\n{body}");
+        let code = module_source(&body);
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let module = self
             .device

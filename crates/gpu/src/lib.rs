@@ -20,6 +20,6 @@ pub(crate) mod testutil;
 
 pub use device::{AdapterPolicy, Gpu};
 pub use error::{GpuError, Result};
-pub use tuning::Tuning;
+pub use tuning::{GpuPrecision, Tuning};
 /// The wgpu this crate is built on (its feature and adapter types appear in [`Gpu`]).
 pub use wgpu;

@@ -205,6 +205,7 @@ impl GpuRenderer {
         input: &wgpu::Buffer,
     ) -> Result<Self> {
         cfg.validate().map_err(GpuError::Unsupported)?;
+        let tuning = &tuning.for_device(gpu);
         tuning.check(&gpu.limits)?;
         let s = cfg.image_size;
         let levels = cfg.renderer_levels();
@@ -697,7 +698,7 @@ pub(crate) mod tests {
         }
     }
 
-    fn compare(cfg: &ModelConfig, tuning: &Tuning, seed: u64, what: &str) {
+    fn compare(cfg: &ModelConfig, tuning: &Tuning, seed: u64, what: &str, tol: f64) {
         let Some(g) = gpu() else { return };
         let cpu = cpu_renderer(cfg, seed);
         let s = cfg.image_size;
@@ -726,17 +727,71 @@ pub(crate) mod tests {
         }
         g.queue.submit([enc.finish()]);
         let got = g.read_f32(&r.output, 3 * s * s).unwrap();
-
-        assert_close(what, &want, &got, FINE_TOL);
+        let mean = want
+            .iter()
+            .zip(&got)
+            .map(|(a, b)| f64::from((a - b).abs()))
+            .sum::<f64>()
+            / want.len() as f64;
+        eprintln!("{what}: mean abs difference {mean:e}");
+        assert_close(what, &want, &got, tol);
     }
 
     #[test]
     fn tiny_renderer_matches_the_cpu() {
         let cfg = ModelConfig::tiny();
-        compare(&cfg, &Tuning::default(), 1, "tiny renderer, default tuning");
+        compare(
+            &cfg,
+            &Tuning::default(),
+            1,
+            "tiny renderer, default tuning",
+            FINE_TOL,
+        );
         let mut t = Tuning::default();
         t.apply("conv_split_k=32,conv_bm=16,conv_bn=32,conv_bk=8,conv_tm=2,conv_tn=4,conv_small_bm=8,conv_small_bn=8,conv_small_bk=4,conv_small_tm=1,conv_small_tn=1")
             .unwrap();
-        compare(&cfg, &t, 2, "tiny renderer, split-K and other tiles");
+        compare(
+            &cfg,
+            &t,
+            2,
+            "tiny renderer, split-K and other tiles",
+            FINE_TOL,
+        );
     }
+
+    /// The fine image with every convolution on the tensor cores (f16 inputs, f32 sums), at
+    /// the tiny and the release size, where the device has them.
+    #[test]
+    fn mma_renderer_matches_the_cpu() {
+        let Some(g) = gpu() else { return };
+        if !g.mma_f16 {
+            eprintln!(
+                "skipping: {} has no 16x16x16 f16 cooperative matrices",
+                g.describe()
+            );
+            return;
+        }
+        let t = Tuning {
+            mma: true,
+            ..Tuning::default()
+        };
+        compare(
+            &ModelConfig::tiny(),
+            &t,
+            1,
+            "tiny renderer, tensor cores",
+            MMA_FINE_TOL,
+        );
+        compare(
+            &ModelConfig::release(),
+            &t,
+            3,
+            "release renderer, tensor cores",
+            MMA_FINE_TOL,
+        );
+    }
+
+    /// The fine image (a sigmoid's output in 0..1) from f16 convolution inputs: ~40 layers
+    /// each adding a few 1e-4 relative.
+    const MMA_FINE_TOL: f64 = 2e-2;
 }

@@ -3,6 +3,7 @@
 //! rebuild of the binary: set `GAGAVATAR_GPU_TUNE`, e.g.
 //! `GAGAVATAR_GPU_TUNE=conv_bn=128,conv_tn=8,radix_bits=5`. crates/gpu/README.md lists what to try.
 
+use crate::device::Gpu;
 use crate::error::{GpuError, Result};
 
 /// Environment variable holding `key=value` pairs separated by commas.
@@ -51,6 +52,96 @@ impl ConvTile {
     }
 }
 
+/// Output tile of the tensor-core convolution (`conv_mma.wgsl`): a workgroup computes
+/// `bm x bn` outputs with one 32-lane subgroup per `16 fm x 16 fn` block of them (each holding
+/// `fm x fn` 16x16 f32 accumulators), stepping `bk` (a multiple of 16) along the depth.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct MmaTile {
+    pub bm: u32,
+    pub bn: u32,
+    pub bk: u32,
+    pub fm: u32,
+    pub fn_: u32,
+}
+
+impl MmaTile {
+    pub fn warps(&self) -> u32 {
+        (self.bm / (16 * self.fm.max(1))) * (self.bn / (16 * self.fn_.max(1)))
+    }
+
+    pub fn threads(&self) -> u32 {
+        32 * self.warps()
+    }
+
+    /// Workgroup memory: f16 weight and input tiles and a 16x16 f32 block per subgroup.
+    pub fn shared_bytes(&self) -> u32 {
+        2 * self.bk * (self.bm + self.bn) + 4 * 256 * self.warps()
+    }
+
+    fn check(&self, name: &str, max_threads: u32, max_shared: u32) -> Result<()> {
+        let ok = self.fm > 0
+            && self.fn_ > 0
+            && self.bk > 0
+            && self.bk.is_multiple_of(16)
+            && self.bm > 0
+            && self.bn > 0
+            && self.bm.is_multiple_of(16 * self.fm)
+            && self.bn.is_multiple_of(16 * self.fn_)
+            && self.threads() <= max_threads;
+        if !ok {
+            return Err(GpuError::Unsupported(format!(
+                "{name} tile {self:?}: bm, bn must be multiples of 16 fm, 16 fn, bk of 16, with \
+                 at most {max_threads} threads (32 per 16fm x 16fn block)"
+            )));
+        }
+        if self.shared_bytes() > max_shared {
+            return Err(GpuError::Unsupported(format!(
+                "{name} tile {self:?} needs {} bytes of workgroup memory, the device has \
+                 {max_shared}",
+                self.shared_bytes()
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// The renderer's convolution precision on a GPU.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum GpuPrecision {
+    /// f32 everywhere (conv.wgsl).
+    F32,
+    /// f16 inputs and f32 sums on the tensor cores (conv_mma.wgsl); an error on a GPU without
+    /// them.
+    F16,
+    /// f16 where the GPU has tensor cores ([`Gpu::mma_f16`]), f32 elsewhere.
+    #[default]
+    Auto,
+}
+
+impl GpuPrecision {
+    pub fn name(self) -> &'static str {
+        match self {
+            GpuPrecision::F32 => "f32",
+            GpuPrecision::F16 => "f16",
+            GpuPrecision::Auto => "auto",
+        }
+    }
+}
+
+impl std::str::FromStr for GpuPrecision {
+    type Err = GpuError;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "f32" => Ok(GpuPrecision::F32),
+            "f16" => Ok(GpuPrecision::F16),
+            "auto" => Ok(GpuPrecision::Auto),
+            _ => Err(GpuError::Unsupported(format!(
+                "GPU precision `{s}`: expected f32, f16 or auto"
+            ))),
+        }
+    }
+}
+
 /// All knobs; [`Tuning::default`] is what runs unless `GAGAVATAR_GPU_TUNE` says otherwise.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Tuning {
@@ -70,6 +161,15 @@ pub struct Tuning {
     /// Depth (input channels x taps) per workgroup of the split-K convolution used where one
     /// layer alone would not fill the device (low resolutions, many channels); 0 = never.
     pub conv_split_k: u32,
+    /// Convolutions on the tensor cores (f16 inputs, f32 sums) where the device has them
+    /// ([`crate::Gpu::mma_f16`]); the f32 kernels otherwise.
+    pub mma: bool,
+    /// Tensor-core tile for layers of 32x32 pixels and more.
+    pub mma_tile: MmaTile,
+    /// Tensor-core tile for smaller layers.
+    pub mma_small: MmaTile,
+    /// Split-K depth for the tensor-core convolutions (0 = never).
+    pub mma_split_k: u32,
 }
 
 impl Default for Tuning {
@@ -98,6 +198,25 @@ impl Default for Tuning {
                 tn: 4,
             },
             conv_split_k: 144,
+            mma: false,
+            // Measured on an H200 (40-frame sweeps): the kernel is bound by staging its tiles,
+            // not by the multiply-adds, so one 16x16 block per subgroup (more threads staging)
+            // beat 2x2 and 2x1 blocks per subgroup.
+            mma_tile: MmaTile {
+                bm: 64,
+                bn: 64,
+                bk: 32,
+                fm: 1,
+                fn_: 1,
+            },
+            mma_small: MmaTile {
+                bm: 64,
+                bn: 64,
+                bk: 32,
+                fm: 1,
+                fn_: 1,
+            },
+            mma_split_k: 144,
         }
     }
 }
@@ -133,6 +252,24 @@ impl Tuning {
                     self.pairs_per_gaussian = v.trim().parse().map_err(|_| bad("not a number"))?
                 }
                 "conv_split_k" => self.conv_split_k = int()?,
+                "mma" => self.mma = int()? != 0,
+                "mma_split_k" => self.mma_split_k = int()?,
+                key if key.starts_with("mma_") => {
+                    let (tile, field) = if let Some(f) = key.strip_prefix("mma_small_") {
+                        (&mut self.mma_small, f)
+                    } else {
+                        (&mut self.mma_tile, &key[4..])
+                    };
+                    let slot = match field {
+                        "bm" => &mut tile.bm,
+                        "bn" => &mut tile.bn,
+                        "bk" => &mut tile.bk,
+                        "fm" => &mut tile.fm,
+                        "fn" => &mut tile.fn_,
+                        _ => return Err(bad("unknown key")),
+                    };
+                    *slot = int()?;
+                }
                 key => {
                     let (tile, field) = if let Some(f) = key.strip_prefix("conv_small_") {
                         (&mut self.conv_small, f)
@@ -154,6 +291,35 @@ impl Tuning {
             }
         }
         Ok(())
+    }
+
+    /// These knobs with the convolutions of `precision` on `gpu`.
+    pub fn with_precision(&self, precision: GpuPrecision, gpu: &Gpu) -> Result<Self> {
+        let mma = match precision {
+            GpuPrecision::F32 => false,
+            GpuPrecision::Auto => gpu.mma_f16,
+            GpuPrecision::F16 if gpu.mma_f16 => true,
+            GpuPrecision::F16 => {
+                return Err(GpuError::Unsupported(format!(
+                    "f16 convolutions need 16x16x16 f16 cooperative matrices (tensor cores), \
+                     which {} does not offer; use f32 or auto",
+                    gpu.describe()
+                )))
+            }
+        };
+        Ok(Self {
+            mma,
+            ..self.clone()
+        })
+    }
+
+    /// These knobs as they apply on `gpu`: the tensor-core convolutions only where it has
+    /// them ([`Gpu::mma_f16`]).
+    pub fn for_device(&self, gpu: &Gpu) -> Self {
+        Self {
+            mma: self.mma && gpu.mma_f16,
+            ..self.clone()
+        }
     }
 
     /// Checks the values against the rules the kernels rely on and the device's limits.
@@ -180,6 +346,10 @@ impl Tuning {
         let shared = limits.max_compute_workgroup_storage_size;
         self.conv.check("conv", threads, shared)?;
         self.conv_small.check("conv_small", threads, shared)?;
+        if self.mma {
+            self.mma_tile.check("mma", threads, shared)?;
+            self.mma_small.check("mma_small", threads, shared)?;
+        }
         Ok(())
     }
 }
@@ -197,6 +367,23 @@ mod tests {
         assert_eq!(t.conv_small.tm, 8);
         assert_eq!(t.radix_bits, 5);
         assert_eq!(t.pairs_per_gaussian, 2.5);
+        t.apply("mma=1,mma_bn=64,mma_small_fn=2,mma_split_k=0")
+            .unwrap();
+        assert!(t.mma);
+        assert_eq!((t.mma_tile.bn, t.mma_small.fn_, t.mma_split_k), (64, 2, 0));
+        let mut m = Tuning {
+            mma: true,
+            ..Default::default()
+        };
+        let big = wgpu::Limits {
+            max_compute_workgroup_storage_size: 49152,
+            max_compute_invocations_per_workgroup: 1024,
+            ..Default::default()
+        };
+        m.check(&big).unwrap();
+        m.mma_tile.bk = 24;
+        assert!(m.check(&big).is_err());
+        assert!(Tuning::default().apply("mma_xx=1").is_err());
         for bad in ["conv_bn", "conv_xx=1", "nope=2", "radix_bits=x"] {
             assert!(Tuning::default().apply(bad).is_err(), "{bad}");
         }
