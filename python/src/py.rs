@@ -732,6 +732,8 @@ fn _demo_file(name: &str) -> PyResult<std::borrow::Cow<'static, [u8]>> {
 
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    // At import, before the module starts threads of its own.
+    gagavatar_gpu::device::quiet_probe_env();
     m.add("Error", m.py().get_type::<Error>())?;
     m.add_class::<Engine>()?;
     m.add_class::<Avatar>()?;

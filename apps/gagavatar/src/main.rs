@@ -125,6 +125,8 @@ pub fn check_interrupt() -> anyhow::Result<()> {
 }
 
 fn main() {
+    // Before any thread starts (see the function).
+    gagavatar_gpu::device::quiet_probe_env();
     tune_malloc();
     let cli = Cli::parse();
     let _ = ctrlc::set_handler(|| {

@@ -371,3 +371,37 @@ fn bench_json_and_gpu_precision() {
     ]);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Without XDG_RUNTIME_DIR (a container, CI) probing the adapters prints nothing of Mesa's:
+/// `--device auto` says in one line where frames render, and nothing else reaches stderr.
+#[test]
+fn probing_is_quiet_without_a_runtime_dir() {
+    let out = Command::new(BIN)
+        .args([
+            "bench",
+            "drive",
+            "--device",
+            "auto",
+            "--preset",
+            "tiny",
+            "--frames",
+            "1",
+            "--threads",
+            "1",
+        ])
+        .env_remove("XDG_RUNTIME_DIR")
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !err.contains("XDG_RUNTIME_DIR"),
+        "Mesa's probe noise:\n{err}"
+    );
+    let device_lines: Vec<&str> = err.lines().filter(|l| l.contains("rendering on")).collect();
+    assert_eq!(device_lines.len(), 1, "{err}");
+}

@@ -73,6 +73,46 @@ pub fn describe(info: &wgpu::AdapterInfo) -> String {
     )
 }
 
+/// Mesa's Vulkan drivers try a Wayland connection while wgpu probes adapters, and libwayland
+/// prints `error: XDG_RUNTIME_DIR is invalid or not set in the environment.` when the variable
+/// is unset (a container, a cron job, CI): twice per probe, in runs that succeed. A private,
+/// empty runtime folder (as a login session would provide) makes the attempt fail quietly.
+/// Call it before any thread starts (it sets an environment variable): the CLI's `main` and
+/// the Python module's import do.
+pub fn quiet_probe_env() {
+    if std::env::var_os("XDG_RUNTIME_DIR").is_some_and(|v| !v.is_empty()) {
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("gagavatar-runtime-{}", whoami_uid()));
+    if std::fs::create_dir_all(&dir).is_err() {
+        return;
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::{MetadataExt, PermissionsExt};
+        let _ = std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o700));
+        // Only a folder of ours that no one else can write (another user may have made one
+        // of that name in a shared temp folder).
+        match std::fs::symlink_metadata(&dir) {
+            Ok(m) if m.is_dir() && m.uid() == whoami_uid() && m.mode() & 0o077 == 0 => {}
+            _ => return,
+        }
+    }
+    std::env::set_var("XDG_RUNTIME_DIR", dir);
+}
+
+/// The user's id on Unix (one runtime folder per user), 0 elsewhere.
+fn whoami_uid() -> u32 {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        if let Ok(m) = std::fs::metadata("/proc/self") {
+            return m.uid();
+        }
+    }
+    0
+}
+
 fn instance() -> wgpu::Instance {
     // WGPU_BACKEND (e.g. `vulkan`) narrows the backends, as in every wgpu program.
     let mut desc = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
