@@ -294,6 +294,9 @@ pub struct FrameJob<'a> {
     pub transform: [[f64; 4]; 3],
 }
 
+/// Frames rendered ahead of the encoder at most (memory: a few RGB frames).
+const ENCODE_QUEUE: usize = 4;
+
 impl Session {
     /// Renders `jobs` in batches into a video at `output` (format by extension), `decorate`
     /// turning frame `i`'s rendered image into the written one (e.g. side by side with its
@@ -315,26 +318,52 @@ impl Session {
         let mut writer = VideoWriter::create(output, width, size, opts)
             .with_context(|| format!("creating {}", output.display()))?;
         let bar = progress(jobs.len(), label);
-        for (c, chunk) in jobs.chunks(batch.max(1)).enumerate() {
-            crate::check_interrupt()?;
-            let records: Vec<_> = chunk.iter().map(|j| j.record).collect();
-            let names: Vec<String> = chunk.iter().map(|j| j.name.clone()).collect();
-            let transforms: Vec<_> = chunk.iter().map(|j| j.transform).collect();
-            for (k, img) in self
-                .render(&records, &names, &transforms)?
-                .into_iter()
-                .enumerate()
-            {
-                let frame = decorate(c * batch.max(1) + k, img)?;
-                let t0 = Instant::now();
-                writer.push_rgb(&frame)?;
-                self.timings.encode += t0.elapsed();
-                bar.inc(1);
-            }
-        }
+        // The encoder runs on its own thread, a few frames behind, so encoding overlaps the
+        // rendering of the next batch (on a GPU the drive is otherwise idle while it encodes).
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<u8>>(ENCODE_QUEUE);
+        let (writer, encoded) = std::thread::scope(|scope| -> Result<(VideoWriter, Duration)> {
+            let encoder = scope.spawn(move || -> Result<(VideoWriter, Duration)> {
+                let mut spent = Duration::ZERO;
+                for frame in rx {
+                    let t0 = Instant::now();
+                    writer.push_rgb(&frame)?;
+                    spent += t0.elapsed();
+                }
+                Ok((writer, spent))
+            });
+            let rendered = (|| -> Result<()> {
+                for (c, chunk) in jobs.chunks(batch.max(1)).enumerate() {
+                    crate::check_interrupt()?;
+                    let records: Vec<_> = chunk.iter().map(|j| j.record).collect();
+                    let names: Vec<String> = chunk.iter().map(|j| j.name.clone()).collect();
+                    let transforms: Vec<_> = chunk.iter().map(|j| j.transform).collect();
+                    for (k, img) in self
+                        .render(&records, &names, &transforms)?
+                        .into_iter()
+                        .enumerate()
+                    {
+                        let frame = decorate(c * batch.max(1) + k, img)?;
+                        // A closed channel means the encoder stopped on an error, which its
+                        // join below reports.
+                        if tx.send(frame).is_err() {
+                            return Ok(());
+                        }
+                        bar.inc(1);
+                    }
+                }
+                Ok(())
+            })();
+            drop(tx);
+            let encoded = encoder
+                .join()
+                .map_err(|_| anyhow::anyhow!("the video encoder thread panicked"))?;
+            rendered?;
+            encoded
+        })?;
+        // Finished (and so written) only once every frame was rendered and encoded.
         let t0 = Instant::now();
         writer.finish()?;
-        self.timings.encode += t0.elapsed();
+        self.timings.encode += encoded + t0.elapsed();
         bar.finish_and_clear();
         eprintln!(
             "wrote {} ({} frames, {width}x{size}, {fps} fps)",

@@ -86,9 +86,22 @@ pub struct GpuDrive {
     renderer: Option<GpuRenderer>,
     noise: Noise,
     frames: u64,
-    staging: wgpu::Buffer,
+    /// Two read-back buffers, so one frame can be read while the next one renders.
+    staging: [wgpu::Buffer; 2],
     rgb_bytes: u64,
     timestamps: Option<(wgpu::QuerySet, wgpu::Buffer, wgpu::Buffer)>,
+}
+
+/// `[3, S, S]` values in [0, 1] as interleaved RGB bytes (the CPU path's `to_rgb8`).
+fn rgb8(img: &[f32], size: usize) -> Vec<u8> {
+    let plane = size * size;
+    let mut out = vec![0u8; 3 * plane];
+    for p in 0..plane {
+        for ch in 0..3 {
+            out[3 * p + ch] = (img[ch * plane + p].clamp(0.0, 1.0) * 255.0).round() as u8;
+        }
+    }
+    out
 }
 
 impl GpuDrive {
@@ -185,11 +198,13 @@ impl GpuDrive {
             Some(GpuRenderer::new(&gpu, tuning, cfg, &weights, &splat.image)?)
         };
         let rgb_bytes = 4 * (3 * s * s) as u64;
-        let staging = gpu.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("frame read-back"),
-            size: rgb_bytes + 16,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
+        let staging = [0, 1].map(|_| {
+            gpu.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("frame read-back"),
+                size: rgb_bytes + 16,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
         });
         let timestamps = gpu.has_timestamps().then(|| {
             let n = 2 * STAGES.len() as u32;
@@ -295,56 +310,119 @@ impl GpuDrive {
         }
     }
 
+    /// Records and submits the frame prepared last, its image and pair count copied into
+    /// read-back buffer `slot`.
+    fn submit(&mut self, slot: usize) -> wgpu::SubmissionIndex {
+        let mut enc = self
+            .gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("frame"),
+            });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("drive"),
+                timestamp_writes: None,
+            });
+            for stage in self.stages() {
+                for s in stage {
+                    s.record(&mut pass);
+                }
+            }
+        }
+        let staging = &self.staging[slot];
+        enc.copy_buffer_to_buffer(self.output(), 0, staging, 0, self.rgb_bytes);
+        enc.copy_buffer_to_buffer(self.splat.sizes(), 0, staging, self.rgb_bytes, 4);
+        self.gpu.queue.submit([enc.finish()])
+    }
+
+    /// Waits for submission `index` alone (later ones keep running), then returns read-back
+    /// buffer `slot`: the image's bytes and the frame's (tile, Gaussian) pair count.
+    fn read_slot(&self, slot: usize, index: wgpu::SubmissionIndex) -> Result<(Vec<u8>, usize)> {
+        let staging = &self.staging[slot];
+        let slice = staging.slice(..self.rgb_bytes + 16);
+        let (tx, rx) = std::sync::mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+        self.gpu
+            .device
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(index),
+                timeout: None,
+            })
+            .map_err(|e| GpuError::Device(format!("waiting for the GPU: {e}")))?;
+        rx.recv()
+            .map_err(|_| GpuError::Device("buffer mapping was dropped".into()))?
+            .map_err(|e| GpuError::Device(format!("mapping a buffer: {e}")))?;
+        let (bytes, total) = {
+            let data = slice
+                .get_mapped_range()
+                .map_err(|e| GpuError::Device(format!("reading a mapped buffer: {e}")))?;
+            let n = self.rgb_bytes as usize;
+            let total = u32::from_le_bytes(
+                data[n..n + 4]
+                    .try_into()
+                    .map_err(|_| GpuError::Device("short read-back".into()))?,
+            ) as usize;
+            (data[..n].to_vec(), total)
+        };
+        staging.unmap();
+        Ok((bytes, total))
+    }
+
     /// Renders one frame: `[3, S, S]` values in [0, 1].
     pub fn frame(&mut self, codes: &FrameCodes, transform: &[[f64; 4]; 3]) -> Result<Vec<f32>> {
         self.prepare(codes, transform)?;
         loop {
-            let mut enc = self
-                .gpu
-                .device
-                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some("frame"),
-                });
-            {
-                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("drive"),
-                    timestamp_writes: None,
-                });
-                for stage in self.stages() {
-                    for s in stage {
-                        s.record(&mut pass);
-                    }
-                }
-            }
-            enc.copy_buffer_to_buffer(self.output(), 0, &self.staging, 0, self.rgb_bytes);
-            enc.copy_buffer_to_buffer(self.splat.sizes(), 0, &self.staging, self.rgb_bytes, 4);
-            self.gpu.queue.submit([enc.finish()]);
-            let bytes = map_read(&self.gpu, &self.staging, self.rgb_bytes + 16)?;
-            let total = u32::from_le_bytes(
-                bytes[self.rgb_bytes as usize..self.rgb_bytes as usize + 4]
-                    .try_into()
-                    .map_err(|_| GpuError::Device("short read-back".into()))?,
-            ) as usize;
+            let index = self.submit(0);
+            let (bytes, total) = self.read_slot(0, index)?;
+            // The pair buffers were too small for this frame: grown, and the frame redone.
             if self.splat.grow(&self.gpu, total)? {
                 continue;
             }
             self.frames += 1;
-            return Ok(bytemuck::pod_collect_to_vec(
-                &bytes[..self.rgb_bytes as usize],
-            ));
+            return Ok(bytemuck::pod_collect_to_vec(&bytes));
         }
     }
 
     /// [`GpuDrive::frame`] as interleaved RGB bytes (the CPU path's `to_rgb8`).
     pub fn frame_rgb8(&mut self, codes: &FrameCodes, transform: &[[f64; 4]; 3]) -> Result<Vec<u8>> {
         let img = self.frame(codes, transform)?;
-        let plane = self.size * self.size;
-        let mut out = vec![0u8; 3 * plane];
-        for p in 0..plane {
-            for ch in 0..3 {
-                let v = img[ch * plane + p];
-                out[3 * p + ch] = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+        Ok(rgb8(&img, self.size))
+    }
+
+    /// Renders frames with the GPU kept busy between them: frame i + 1 is submitted before
+    /// frame i is read back (two read-back buffers), so the read-back and the conversion to
+    /// bytes overlap the next frame's kernels instead of following them. The same bytes as
+    /// [`GpuDrive::frame_rgb8`] frame by frame.
+    pub fn frames_rgb8(&mut self, jobs: &[(FrameCodes, [[f64; 4]; 3])]) -> Result<Vec<Vec<u8>>> {
+        let mut out = Vec::with_capacity(jobs.len());
+        let mut in_flight = std::collections::VecDeque::with_capacity(2);
+        let mut next = 0;
+        while out.len() < jobs.len() {
+            while in_flight.len() < 2 && next < jobs.len() {
+                let (codes, transform) = &jobs[next];
+                self.prepare(codes, transform)?;
+                let slot = next % 2;
+                in_flight.push_back((next, slot, self.submit(slot)));
+                next += 1;
             }
+            let Some((k, slot, index)) = in_flight.pop_front() else {
+                break;
+            };
+            let (bytes, total) = self.read_slot(slot, index)?;
+            if self.splat.grow(&self.gpu, total)? {
+                // This frame, and the one submitted behind it, ran with too few pair slots:
+                // once the device is idle, render again from this frame on.
+                self.gpu.wait()?;
+                in_flight.clear();
+                next = k;
+                continue;
+            }
+            self.frames += 1;
+            let img: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes);
+            out.push(rgb8(&img, self.size));
         }
         Ok(out)
     }
@@ -507,6 +585,81 @@ mod tests {
     /// The whole tiny model: GPU frames against `GagAvatar::drive` on an avatar from
     /// `reconstruct`, for several frames through the same pipeline, with fixed and seeded
     /// noise, and the ablation without renderer.
+    /// Frames rendered two in flight give the bytes of frames rendered one by one, also when
+    /// the pair buffers start too small and grow part way through (the camera comes closer
+    /// each frame, so later frames need more pairs).
+    #[test]
+    fn pipelined_frames_equal_frames_one_by_one() {
+        let Some(g) = shared_gpu() else { return };
+        let cfg = ModelConfig::tiny();
+        let data = init_weights(&cfg, 4).unwrap();
+        let map: HashMap<String, Tensor> = data
+            .into_iter()
+            .map(|(k, (s, v))| (k, Tensor::from_vec(v, s, &Device::Cpu).unwrap()))
+            .collect();
+        let model = build_model(&cfg, map, &Device::Cpu).unwrap();
+        let (flame, identity) = flame_setup(2);
+        let size = cfg.image_size;
+        let mut rng = Rng::new(8);
+        let img: Vec<f32> = (0..3 * size * size).map(|_| rng.uniform() as f32).collect();
+        let img = Tensor::from_vec(img, (1, 3, size, size), &Device::Cpu).unwrap();
+        let src = Camera::look_at_origin_matrix(9.0, std::f64::consts::PI, 0.0);
+        let v: Vec<f32> = src.iter().flatten().map(|&x| x as f32).collect();
+        let avatar = model
+            .reconstruct(&img, &Tensor::from_vec(v, (1, 3, 4), &Device::Cpu).unwrap())
+            .unwrap();
+        let jobs: Vec<(FrameCodes, [[f64; 4]; 3])> = (0..7)
+            .map(|f| {
+                let tm = Camera::look_at_origin_matrix(
+                    12.0 - 1.0 * f as f64,
+                    std::f64::consts::PI + 0.05 * f as f64,
+                    0.0,
+                );
+                (random_codes(&mut rng, flame.config.n_exp), tm)
+            })
+            .collect();
+        let mut tight = Tuning::default();
+        tight.apply("pairs_per_gaussian=0.05").unwrap();
+        let open = |t: &Tuning| {
+            GpuDrive::from_model(
+                g.clone(),
+                t,
+                &model,
+                &avatar,
+                &flame,
+                &identity,
+                Noise::Fixed,
+            )
+            .unwrap()
+        };
+        let mut one_by_one = open(&Tuning::default());
+        let want: Vec<Vec<u8>> = jobs
+            .iter()
+            .map(|(c, tm)| one_by_one.frame_rgb8(c, tm).unwrap())
+            .collect();
+        for (what, t) in [
+            ("default pairs", Tuning::default()),
+            ("growing pairs", tight),
+        ] {
+            let mut d = open(&t);
+            let before = d.pair_capacity();
+            let got = d.frames_rgb8(&jobs).unwrap();
+            assert_eq!(got.len(), jobs.len(), "{what}");
+            for (i, (w, g)) in want.iter().zip(&got).enumerate() {
+                if let Some(p) = w.iter().zip(g).position(|(a, b)| a != b) {
+                    panic!(
+                        "{what}, frame {i}: byte {p}: expected {}, got {}",
+                        w[p], g[p]
+                    );
+                }
+            }
+            assert_eq!(d.frames(), jobs.len() as u64, "{what}");
+            if what == "growing pairs" {
+                assert!(d.pair_capacity() > before, "the pair buffers never grew");
+            }
+        }
+    }
+
     #[test]
     fn tiny_drive_matches_gagavatar_drive() {
         let Some(g) = shared_gpu() else { return };
