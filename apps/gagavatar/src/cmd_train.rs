@@ -2,12 +2,13 @@
 //! `gagavatar_train` (the loop, checkpoints, evaluation live there).
 
 use std::path::PathBuf;
-use std::sync::OnceLock;
+use std::sync::{Arc, OnceLock};
 
 use anyhow::{bail, Context, Result};
 use candle_core::{DType, Device};
 use clap::Args;
 use gagavatar_data::Dataset;
+use gagavatar_train::collective::{launched_by_mpi, Collective, Single};
 use gagavatar_train::eval::{evaluate_with, write_grid};
 use gagavatar_train::pairs::{eval_pairs, SampleSource};
 use gagavatar_train::perceptual::{seeded_weights, PerceptualLoss, PERCEP_PREFIX};
@@ -136,13 +137,17 @@ fn thread_note() -> String {
     )
 }
 
-/// Progress bar and messages of a run.
+/// Progress bar and messages of a run (of rank 0's alone in a data-parallel run).
 struct CliMonitor {
     bar: OnceLock<ProgressBar>,
+    quiet: bool,
 }
 
 impl CliMonitor {
     fn say(&self, msg: String) {
+        if self.quiet {
+            return;
+        }
         match self.bar.get() {
             // A hidden bar (stderr not a terminal) swallows its printed lines.
             Some(b) if !b.is_hidden() => b.println(msg),
@@ -156,6 +161,9 @@ impl Monitor for CliMonitor {
         self.say(format!("warning: {msg}"));
     }
     fn started(&self, first: u64, until: u64) {
+        if self.quiet {
+            return;
+        }
         let bar = ProgressBar::new(until);
         bar.set_style(
             ProgressStyle::with_template(
@@ -194,14 +202,36 @@ impl Monitor for CliMonitor {
     }
 }
 
+/// The ranks of this run: MPI's when an MPI launcher started the process, else one.
+fn collective() -> Result<Arc<dyn Collective>> {
+    if !launched_by_mpi() {
+        return Ok(Arc::new(Single));
+    }
+    #[cfg(feature = "mpi")]
+    {
+        Ok(Arc::new(gagavatar_train::collective::Mpi::init()?))
+    }
+    #[cfg(not(feature = "mpi"))]
+    {
+        bail!(
+            "started by an MPI launcher, but this gagavatar was built without MPI: build it \
+             with `cargo build --release -p gagavatar --features mpi` (needs libopenmpi-dev and \
+             libclang-dev)"
+        )
+    }
+}
+
 pub fn run_train(a: TrainArgs) -> Result<()> {
     set_threads(a.threads);
     let dev = Device::Cpu;
+    let ranks = collective()?;
+    let lead = ranks.rank() == 0;
     let monitor = CliMonitor {
         bar: OnceLock::new(),
+        quiet: !lead,
     };
     let mut run = if let Some(dir) = &a.resume {
-        Run::resume(dir, a.steps, &dev, &monitor)?
+        Run::resume_with(dir, a.steps, &dev, &monitor, ranks.clone())?
     } else {
         let out = a.out.as_ref().context("--out RUN is required")?;
         let mut cfg = match (&a.config, &a.preset) {
@@ -234,8 +264,21 @@ pub fn run_train(a: TrainArgs) -> Result<()> {
             cfg.val.every = v;
         }
         cfg.validate().map_err(anyhow::Error::msg)?;
-        Run::create(cfg, out, a.force, &dev, &monitor)?
+        Run::create_with(cfg, out, a.force, &dev, &monitor, ranks.clone())?
     };
+    if !lead {
+        let summary = run.train(&monitor)?;
+        let _ = summary;
+        return Ok(());
+    }
+    if ranks.size() > 1 {
+        eprintln!(
+            "data-parallel: {} ranks (MPI), {} pairs each of every step's batch of {}",
+            ranks.size(),
+            run.config().train.batch / ranks.size(),
+            run.config().train.batch
+        );
+    }
     let cfg = run.config();
     let (pairs, videos) = run.train_pairs();
     eprintln!(

@@ -11,7 +11,7 @@ use candle_core::{DType, Device, Tensor};
 use gagavatar_flame::{FlameIdentity, FlameModel, TrackedFrame};
 use gagavatar_net::config::FOCAL;
 use gagavatar_net::model::{Avatar, GagAvatar};
-use gagavatar_net::style_unet::{seeded_noise, Noise, StyleUNet};
+use gagavatar_net::style_unet::{seeded_noise_from, Noise, StyleUNet};
 use gagavatar_net::ModelConfig;
 use gagavatar_splat::Camera;
 
@@ -277,7 +277,12 @@ impl GpuDrive {
                         })
                         .collect::<Result<Vec<_>>>()?,
                 ),
-                Noise::Seeded(seed) => {
+                Noise::Seeded(_) | Noise::SeededFrom { .. } => {
+                    let (seed, first) = match self.noise {
+                        Noise::SeededFrom { seed, first } => (seed, first),
+                        Noise::Seeded(seed) => (seed, 0),
+                        _ => (0, 0),
+                    };
                     let like = Tensor::zeros(1, DType::F32, &Device::Cpu)
                         .map_err(|e| GpuError::Device(e.to_string()))?;
                     Some(
@@ -285,7 +290,7 @@ impl GpuDrive {
                             .iter()
                             .enumerate()
                             .map(|(i, &n)| {
-                                seeded_noise(seed, i, 1, n, &like)
+                                seeded_noise_from(seed, i, first, 1, n, &like)
                                     .and_then(|t| t.flatten_all())
                                     .and_then(|t| t.to_vec1::<f32>())
                                     .map_err(|e| GpuError::Device(e.to_string()))

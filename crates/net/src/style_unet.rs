@@ -58,6 +58,9 @@ pub enum Noise {
     /// resumed. Buffer `i` comes from its own stream of the seed, drawn sample after sample, so
     /// sample 0 gets the same noise whatever the batch size.
     Seeded(u64),
+    /// `Seeded(seed)`'s noise of samples `first..` of the step's batch: a data-parallel rank
+    /// holding that part of the batch gets the noise one process holding all of it would.
+    SeededFrom { seed: u64, first: usize },
 }
 
 /// N(0, 1) noise `[batch, 1, r, r]` for buffer `index` from `seed` (see [`Noise::Seeded`]).
@@ -68,11 +71,26 @@ pub fn seeded_noise(
     r: usize,
     like: &Tensor,
 ) -> Result<Tensor> {
+    seeded_noise_from(seed, index, 0, batch, r, like)
+}
+
+/// Samples `first..first + batch` of [`seeded_noise`]'s stream (see [`Noise::SeededFrom`]).
+pub fn seeded_noise_from(
+    seed: u64,
+    index: usize,
+    first: usize,
+    batch: usize,
+    r: usize,
+    like: &Tensor,
+) -> Result<Tensor> {
     // SplitMix64 finaliser of (seed, index): independent streams per buffer.
     let mut z = seed ^ (index as u64 + 1).wrapping_mul(0xD1B5_4A32_D192_ED03);
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
     let mut rng = gagavatar_splat::testscene::Rng::new(z ^ (z >> 31));
+    for _ in 0..first * r * r {
+        rng.normal();
+    }
     let v: Vec<f64> = (0..batch * r * r).map(|_| rng.normal()).collect();
     Tensor::from_vec(v, (batch, 1, r, r), like.device())?.to_dtype(like.dtype())
 }
@@ -560,6 +578,9 @@ impl StyleGan2Decoder {
                 Tensor::randn(0f32, 1f32, (batch, 1, r, r), like.device())?.to_dtype(like.dtype())
             }
             Noise::Seeded(seed) => seeded_noise(seed, i, batch, noise_resolution(i), like),
+            Noise::SeededFrom { seed, first } => {
+                seeded_noise_from(seed, i, first, batch, noise_resolution(i), like)
+            }
         }
     }
 
@@ -852,6 +873,26 @@ mod tests {
     use crate::ModelConfig;
     use candle_core::{Device, Tensor};
     use std::collections::HashMap;
+
+    /// A data-parallel rank's noise (`SeededFrom`) is its samples' part of the whole batch's.
+    #[test]
+    fn seeded_noise_from_is_a_slice_of_the_whole_batch() {
+        let like = Tensor::zeros(1, candle_core::DType::F32, &Device::Cpu).unwrap();
+        let whole = super::seeded_noise(9, 2, 4, 8, &like).unwrap();
+        for (first, n) in [(0, 1), (1, 2), (3, 1)] {
+            let part = super::seeded_noise_from(9, 2, first, n, 8, &like).unwrap();
+            let want = whole.narrow(0, first, n).unwrap();
+            let d = (part - want)
+                .unwrap()
+                .abs()
+                .unwrap()
+                .max_all()
+                .unwrap()
+                .to_scalar::<f32>()
+                .unwrap();
+            assert_eq!(d, 0.0, "samples {first}..{}", first + n);
+        }
+    }
 
     /// `named_weights` lists every renderer key of the checkpoint but the unused `toRGB.k`,
     /// each with the checkpoint's values.

@@ -24,6 +24,7 @@
 pub mod adam;
 pub mod bench;
 pub mod ckpt;
+pub mod collective;
 pub mod config;
 pub mod error;
 pub mod eval;
@@ -39,6 +40,7 @@ pub mod run_error;
 pub mod trainer;
 
 pub use adam::{Adam, AdamConfig, LrRule};
+pub use collective::{Collective, Single};
 pub use config::TrainConfig;
 pub use error::{Result, TrainError};
 pub use eval::{evaluate, EvalReport, Scores};

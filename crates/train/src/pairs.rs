@@ -67,6 +67,9 @@ pub struct PairSampler {
     targets: Vec<(u32, u32)>,
     /// The last epoch's order (recomputing it per sample would cost O(n) each).
     epoch_cache: Mutex<Option<(u64, Arc<Vec<u32>>)>>,
+    /// The first pair and the number of pairs of each step's batch this sampler draws (the
+    /// whole batch unless [`PairSampler::shard`]ed).
+    share: (usize, usize),
 }
 
 impl PairSampler {
@@ -108,6 +111,7 @@ impl PairSampler {
             Self {
                 seed,
                 batch,
+                share: (0, batch),
                 cross_identity,
                 videos,
                 targets,
@@ -154,10 +158,34 @@ impl PairSampler {
         order
     }
 
-    /// The pairs of 0-based step `step`.
+    /// Keeps this sampler to rank `rank`'s share of each step's batch (of `size` equal
+    /// shares): pairs `rank b..(rank + 1) b` of the step's `size b`, the same pairs one
+    /// process would draw at that place in the batch.
+    pub fn shard(&mut self, rank: usize, size: usize) -> RunResult<()> {
+        if size == 0 || rank >= size || !self.batch.is_multiple_of(size) {
+            return Err(crate::run_error::RunError::Config {
+                path: None,
+                reason: format!(
+                    "a batch of {} does not split into {size} equal shares (one per rank):                      make the batch a multiple of the rank count",
+                    self.batch
+                ),
+            });
+        }
+        let b = self.batch / size;
+        self.share = (rank * b, b);
+        Ok(())
+    }
+
+    /// The first pair of this sampler's share of a step's batch, and the share's size.
+    pub fn share(&self) -> (usize, usize) {
+        self.share
+    }
+
+    /// The pairs of 0-based step `step` (this sampler's share of them, see [`PairSampler::shard`]).
     pub fn pairs(&self, step: u64) -> Vec<Pair> {
         let n = self.targets.len() as u64;
-        (0..self.batch as u64)
+        let (first, count) = self.share;
+        (first as u64..(first + count) as u64)
             .map(|i| {
                 let k = step * self.batch as u64 + i;
                 let order = self.epoch_order(k / n);

@@ -45,6 +45,13 @@ pub enum RunError {
     /// A run folder or checkpoint that is missing, inconsistent or unreadable.
     #[error("{path}: {reason}")]
     Checkpoint { path: PathBuf, reason: String },
+    /// The data-parallel ranks could not agree or talk (MPI), or another rank failed.
+    #[error("data-parallel rank {rank} of {size}: {reason}")]
+    Ranks {
+        rank: usize,
+        size: usize,
+        reason: String,
+    },
     /// Ctrl-C or another stop request.
     #[error("stopped at step {step}: {reason}")]
     Stopped { step: u64, reason: String },

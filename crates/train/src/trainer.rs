@@ -43,6 +43,7 @@ use crate::ckpt::{
     read_checkpoint, write_checkpoint, TrainMeta, CHECKPOINT_FILE, CHECKPOINT_FORMAT, CONFIG_FILE,
     METRICS_FILE, VAL_DIR, WEIGHTS_FILE,
 };
+use crate::collective::{Collective, Single};
 use crate::config::TrainConfig;
 use crate::eval::{evaluate, write_grid, EvalReport};
 use crate::losses::{LossInputs, TrainLosses};
@@ -118,6 +119,8 @@ pub struct TrainState {
     /// Steps the NaN guard skipped.
     pub skipped_steps: u64,
     poisoned: BTreeSet<u64>,
+    /// The ranks this state trains with (one: [`Single`]).
+    collective: Arc<dyn Collective>,
 }
 
 impl std::fmt::Debug for TrainState {
@@ -159,7 +162,62 @@ impl TrainState {
             step: 0,
             skipped_steps: 0,
             poisoned: BTreeSet::new(),
+            collective: Arc::new(Single),
         })
+    }
+
+    /// Trains as one rank of a data-parallel run: each step's batch is this rank's share, and
+    /// gradients and loss terms are averaged over the ranks before the (identical) Adam step.
+    pub fn set_collective(&mut self, collective: Arc<dyn Collective>) {
+        self.collective = collective;
+    }
+
+    /// Replaces each gradient by its mean over the ranks (every rank holds the same
+    /// parameters, so the flattened gradients line up in name order).
+    fn average_gradients(
+        &self,
+        vars: &[(String, Var)],
+        grads: &mut candle_core::backprop::GradStore,
+    ) -> RunResult<()> {
+        let c = &self.collective;
+        let mut flat: Vec<f32> = Vec::new();
+        let mut have = Vec::with_capacity(vars.len());
+        for (_, v) in vars {
+            match grads.get(v.as_tensor()) {
+                Some(g) => {
+                    flat.extend(g.flatten_all()?.to_dtype(DType::F32)?.to_vec1::<f32>()?);
+                    have.push(true);
+                }
+                None => have.push(false),
+            }
+        }
+        // The same layout on every rank: sum(n)^2 = size sum(n^2) only when all n are equal.
+        let n = flat.len() as f64;
+        let mut sums = [n, n * n];
+        c.sum_f64(&mut sums)?;
+        if sums[0] * sums[0] != c.size() as f64 * sums[1] {
+            return Err(RunError::Ranks {
+                rank: c.rank(),
+                size: c.size(),
+                reason: "the ranks' gradients differ in size (different models?)".into(),
+            });
+        }
+        c.sum_f32(&mut flat)?;
+        let scale = 1.0 / c.size() as f64;
+        let mut at = 0;
+        for ((_, v), h) in vars.iter().zip(have) {
+            if !h {
+                continue;
+            }
+            let t = v.as_tensor();
+            let k = t.elem_count();
+            let g = Tensor::from_slice(&flat[at..at + k], t.dims(), t.device())?
+                .affine(scale, 0.0)?
+                .to_dtype(t.dtype())?;
+            grads.insert(t, g);
+            at += k;
+        }
+        Ok(())
     }
 
     /// Restores a state from a checkpoint's tensors (`model`, `optimizer`) at step `step`.
@@ -201,12 +259,22 @@ impl TrainState {
         let step = self.step;
         let adam_cfg = self.adam.config();
         let lr = adam_cfg.lr * adam_cfg.factor(self.adam.schedule_step());
+        let ranks = self.collective.size();
+        let noise = if ranks > 1 {
+            // This rank's samples sit at rank x share in the step's whole batch.
+            Noise::SeededFrom {
+                seed: self.noise_seed(step),
+                first: self.collective.rank() * batch.source_image.dim(0)?,
+            }
+        } else {
+            Noise::Seeded(self.noise_seed(step))
+        };
         let out = self.model.train_forward(
             &batch.source_image,
             &batch.source_transform,
             &batch.target_vertices,
             &batch.target_transform,
-            Noise::Seeded(self.noise_seed(step)),
+            noise,
         )?;
         let terms = self.losses.compute(&LossInputs {
             coarse: &out.coarse,
@@ -221,13 +289,32 @@ impl TrainState {
             total = (total * f64::NAN)?;
             loss = f64::NAN;
         }
+        let (mut img, mut box_l1) = (terms.img.value, terms.box_l1.value);
+        let mut percep = terms.percep.as_ref().map(|t| t.value);
+        let mut point = terms.point.as_ref().map(|t| t.value);
+        if ranks > 1 {
+            // The step's loss is the mean over the whole batch: the ranks' means averaged (a
+            // NaN on any rank makes every rank skip the step).
+            let mut v = [
+                loss,
+                img,
+                box_l1,
+                percep.unwrap_or(0.0),
+                point.unwrap_or(0.0),
+            ];
+            self.collective.sum_f64(&mut v)?;
+            let m = v.map(|x| x / ranks as f64);
+            (loss, img, box_l1) = (m[0], m[1], m[2]);
+            percep = percep.map(|_| m[3]);
+            point = point.map(|_| m[4]);
+        }
         let mut report = StepReport {
             step: step + 1,
             loss,
-            img: terms.img.value,
-            box_l1: terms.box_l1.value,
-            percep: terms.percep.as_ref().map(|t| t.value),
-            point: terms.point.as_ref().map(|t| t.value),
+            img,
+            box_l1,
+            percep,
+            point,
             lr,
             grad_norm: f64::NAN,
             skipped: None,
@@ -237,8 +324,12 @@ impl TrainState {
         if !loss.is_finite() {
             report.skipped = Some(format!("the loss is {loss}"));
         } else {
-            let grads = total.backward()?;
-            let vars = self.vars()?;
+            let mut grads = total.backward()?;
+            let mut vars = self.vars()?;
+            vars.sort_by(|a, b| a.0.cmp(&b.0));
+            if ranks > 1 {
+                self.average_gradients(&vars, &mut grads)?;
+            }
             let mut sums = Vec::with_capacity(vars.len());
             for (name, v) in &vars {
                 match grads.get(v.as_tensor()) {
@@ -352,6 +443,7 @@ pub struct Run {
     percep_tensors: HashMap<String, Tensor>,
     metrics: Vec<String>,
     warned_no_grad: bool,
+    collective: Arc<dyn Collective>,
 }
 
 impl std::fmt::Debug for Run {
@@ -370,19 +462,25 @@ struct Prepared {
     val_pairs: Vec<Pair>,
 }
 
-fn prepare(cfg: &TrainConfig, first_step: u64, monitor: &dyn Monitor) -> RunResult<Prepared> {
+fn prepare(
+    cfg: &TrainConfig,
+    first_step: u64,
+    collective: &dyn Collective,
+    monitor: &dyn Monitor,
+) -> RunResult<Prepared> {
     let dir = cfg
         .data
         .dir
         .as_deref()
         .ok_or_else(|| config_err(None, "no dataset: pass --data DIR (or set [data] dir)"))?;
     let dataset = Dataset::open(dir)?;
-    let (sampler, single) = PairSampler::new(
+    let (mut sampler, single) = PairSampler::new(
         &dataset.splits().train,
         cfg.train.seed,
         cfg.train.batch,
         cfg.data.cross_identity,
     )?;
+    sampler.shard(collective.rank(), collective.size())?;
     if single > 0 {
         monitor.warn(&format!(
             "{single} videos of the train split have a single frame and form no pair; left out"
@@ -499,6 +597,24 @@ fn remove_if_exists(path: &Path) -> RunResult<()> {
     }
 }
 
+/// Every rank learns whether every rank got its run: a rank whose own start failed returns
+/// its error; the others stop too, naming it (so none waits for a partner that is gone).
+fn agree(collective: &dyn Collective, run: RunResult<Run>) -> RunResult<Run> {
+    if collective.size() == 1 {
+        return run;
+    }
+    let all = collective.all_ok(run.is_ok())?;
+    match run {
+        Ok(r) if all => Ok(r),
+        Ok(_) => Err(RunError::Ranks {
+            rank: collective.rank(),
+            size: collective.size(),
+            reason: "another rank could not start the run (its error is printed by it)".into(),
+        }),
+        Err(e) => Err(e),
+    }
+}
+
 /// The `step` field of a metrics line.
 fn line_step(line: &str) -> Option<u64> {
     serde_json::from_str::<serde_json::Value>(line)
@@ -512,15 +628,41 @@ impl Run {
     /// replaces the run files there). Everything that can be checked is checked before
     /// anything is written.
     pub fn create(
-        mut cfg: TrainConfig,
+        cfg: TrainConfig,
         dir: &Path,
         overwrite: bool,
         device: &Device,
         monitor: &dyn Monitor,
     ) -> RunResult<Self> {
+        Self::create_with(cfg, dir, overwrite, device, monitor, Arc::new(Single))
+    }
+
+    /// [`Run::create`] as one rank of a data-parallel run: every rank checks and prepares,
+    /// rank 0 alone writes the folder, and all start only if all could.
+    pub fn create_with(
+        cfg: TrainConfig,
+        dir: &Path,
+        overwrite: bool,
+        device: &Device,
+        monitor: &dyn Monitor,
+        collective: Arc<dyn Collective>,
+    ) -> RunResult<Self> {
+        let run = Self::create_rank(cfg, dir, overwrite, device, monitor, collective.clone());
+        agree(&*collective, run)
+    }
+
+    fn create_rank(
+        mut cfg: TrainConfig,
+        dir: &Path,
+        overwrite: bool,
+        device: &Device,
+        monitor: &dyn Monitor,
+        collective: Arc<dyn Collective>,
+    ) -> RunResult<Self> {
         cfg.pin()?;
         cfg.validate().map_err(|e| config_err(None, e))?;
-        if dir.exists() {
+        let writer = collective.rank() == 0;
+        if writer && dir.exists() {
             if !dir.is_dir() {
                 return Err(ckpt_err(dir, "exists and is not a folder"));
             }
@@ -544,14 +686,29 @@ impl Run {
                 }
             }
         }
-        let prepared = prepare(&cfg, 0, monitor)?;
+        let prepared = prepare(&cfg, 0, &*collective, monitor)?;
         let init = match &cfg.train.init {
             Some(p) => Some(read_weights(p)?.tensors),
             None => None,
         };
         let (percep_tensors, percep) = percep_setup(&cfg, init.as_ref(), device, monitor)?;
-        let state = TrainState::new(cfg, init, percep, device)?;
-
+        let mut state = TrainState::new(cfg, init, percep, device)?;
+        state.set_collective(collective.clone());
+        let run = Self {
+            state,
+            dir: dir.to_owned(),
+            device: device.clone(),
+            source: prepared.source,
+            sampler: prepared.sampler,
+            val_pairs: prepared.val_pairs,
+            percep_tensors,
+            metrics: Vec::new(),
+            warned_no_grad: false,
+            collective,
+        };
+        if !writer {
+            return Ok(run);
+        }
         std::fs::create_dir_all(dir).map_err(io_err(dir, "cannot create"))?;
         for f in [CHECKPOINT_FILE, WEIGHTS_FILE, METRICS_FILE, CONFIG_FILE] {
             remove_if_exists(&dir.join(f))?;
@@ -565,17 +722,6 @@ impl Run {
                 }
             }
         }
-        let run = Self {
-            state,
-            dir: dir.to_owned(),
-            device: device.clone(),
-            source: prepared.source,
-            sampler: prepared.sampler,
-            val_pairs: prepared.val_pairs,
-            percep_tensors,
-            metrics: Vec::new(),
-            warned_no_grad: false,
-        };
         run.write_config()?;
         Ok(run)
     }
@@ -587,6 +733,29 @@ impl Run {
         steps: Option<u64>,
         device: &Device,
         monitor: &dyn Monitor,
+    ) -> RunResult<Self> {
+        Self::resume_with(dir, steps, device, monitor, Arc::new(Single))
+    }
+
+    /// [`Run::resume`] as one rank of a data-parallel run (any rank count that divides the
+    /// batch: the checkpoint does not depend on it).
+    pub fn resume_with(
+        dir: &Path,
+        steps: Option<u64>,
+        device: &Device,
+        monitor: &dyn Monitor,
+        collective: Arc<dyn Collective>,
+    ) -> RunResult<Self> {
+        let run = Self::resume_rank(dir, steps, device, monitor, collective.clone());
+        agree(&*collective, run)
+    }
+
+    fn resume_rank(
+        dir: &Path,
+        steps: Option<u64>,
+        device: &Device,
+        monitor: &dyn Monitor,
+        collective: Arc<dyn Collective>,
     ) -> RunResult<Self> {
         let ck_path = dir.join(CHECKPOINT_FILE);
         if !ck_path.exists() {
@@ -619,7 +788,7 @@ impl Run {
             cfg.train.steps = n;
         }
         cfg.pin()?;
-        let prepared = prepare(&cfg, ck.meta.step, monitor)?;
+        let prepared = prepare(&cfg, ck.meta.step, &*collective, monitor)?;
         let percep = PerceptualLoss::from_tensors(&ck.model, DType::F32, device)?;
         if percep.is_none() && cfg.loss.percep_weight > 0.0 {
             monitor.warn(
@@ -632,7 +801,7 @@ impl Run {
             .filter(|(k, _)| k.starts_with(PERCEP_PREFIX))
             .map(|(k, v)| (k.clone(), v.clone()))
             .collect();
-        let state = TrainState::restore(
+        let mut state = TrainState::restore(
             cfg,
             ck.model,
             &ck.optimizer,
@@ -641,6 +810,7 @@ impl Run {
             percep,
             device,
         )?;
+        state.set_collective(collective.clone());
         let metrics = match std::fs::read_to_string(dir.join(METRICS_FILE)) {
             Ok(text) => text
                 .lines()
@@ -659,9 +829,17 @@ impl Run {
             percep_tensors,
             metrics,
             warned_no_grad: true,
+            collective,
         };
-        run.write_config()?;
+        if run.collective.rank() == 0 {
+            run.write_config()?;
+        }
         Ok(run)
+    }
+
+    /// This process's rank and the rank count (0 and 1 without data parallelism).
+    pub fn ranks(&self) -> (usize, usize) {
+        (self.collective.rank(), self.collective.size())
     }
 
     pub fn dir(&self) -> &Path {
@@ -778,10 +956,19 @@ impl Run {
             data.prefetch,
         );
         monitor.started(first, until);
+        let writer = self.collective.rank() == 0;
         while self.state.step < until {
-            if monitor.stop_requested() {
-                let path = self.save_checkpoint()?;
-                monitor.checkpoint(self.state.step, &path);
+            // Ranks stop together (a stop request reaches them at different moments).
+            let stop = if self.collective.size() > 1 {
+                !self.collective.all_ok(!monitor.stop_requested())?
+            } else {
+                monitor.stop_requested()
+            };
+            if stop {
+                if writer {
+                    let path = self.save_checkpoint()?;
+                    monitor.checkpoint(self.state.step, &path);
+                }
                 summary.stopped = true;
                 break;
             }
@@ -845,7 +1032,7 @@ impl Run {
             if let Some(why) = &report.skipped {
                 line["skipped"] = json!(why);
             }
-            if val_now {
+            if val_now && writer {
                 if let Some(v) = self.validate()? {
                     let (f, c) = (v.fine(), v.coarse());
                     line["val_psnr"] = json!(f.psnr);
@@ -856,11 +1043,11 @@ impl Run {
                     summary.last_validation = Some(v);
                 }
             }
-            if log_now {
+            if log_now && writer {
                 self.metrics.push(line.to_string());
                 self.write_metrics()?;
             }
-            if ckpt_now {
+            if ckpt_now && writer {
                 let path = self.save_checkpoint()?;
                 monitor.checkpoint(s, &path);
             }

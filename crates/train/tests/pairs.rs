@@ -148,3 +148,30 @@ fn threaded_loader_delivers_the_synchronous_batches_in_order() {
     }
     assert!(threaded.next_batch().is_err(), "past the end");
 }
+
+/// A data-parallel rank's share: the ranks' pairs, in rank order, are the one-process batch
+/// (cross-identity sources included); a batch that does not split is refused.
+#[test]
+fn shards_concatenate_to_the_whole_batch() {
+    let train = names(&[("a", 3), ("b", 4), ("id_x", 5)]);
+    let (whole, _) = PairSampler::new(&train, 5, 6, 0.3).unwrap();
+    for size in [1, 2, 3, 6] {
+        let shards: Vec<PairSampler> = (0..size)
+            .map(|r| {
+                let (mut s, _) = PairSampler::new(&train, 5, 6, 0.3).unwrap();
+                s.shard(r, size).unwrap();
+                assert_eq!(s.share(), (r * 6 / size, 6 / size));
+                s
+            })
+            .collect();
+        for step in [0, 1, 7, 40] {
+            let joined: Vec<_> = shards.iter().flat_map(|s| s.pairs(step)).collect();
+            assert_eq!(joined, whole.pairs(step), "{size} ranks, step {step}");
+        }
+    }
+    let (mut s, _) = PairSampler::new(&train, 5, 6, 0.3).unwrap();
+    for (rank, size) in [(0, 4), (0, 0), (2, 2)] {
+        let e = s.shard(rank, size).unwrap_err().to_string();
+        assert!(e.contains("does not split"), "{e}");
+    }
+}

@@ -1,0 +1,232 @@
+//! Data-parallel training through MPI (built with `--features mpi`, run under `mpirun`):
+//! two ranks at one pair each follow one process at batch 2, rank 0 alone writes the run,
+//! and a run resumes with another rank count. Skipped with a printed reason when `mpirun` is
+//! missing, unless GAGAVATAR_REQUIRE_MPI is set (CI sets it).
+#![cfg(feature = "mpi")]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+const BIN: &str = env!("CARGO_BIN_EXE_gagavatar");
+
+/// The first steps' losses and gradient norms: the same sums in another order (each rank's
+/// gradient of its own pair, then MPI's sum), so f32 rounding apart.
+const STEP_RTOL: f64 = 1e-5;
+/// Weights after `STEPS` steps. Adam (betas (0, 0.99)) divides each gradient by its running
+/// RMS, so a parameter whose gradient is rounding noise moves by up to the learning rate
+/// either way on each step: the bound is 2 x lr x steps (lr 1.5e-4 at most in the tiny
+/// preset); the median must stay at rounding level.
+const STEPS: u64 = 20;
+const WEIGHT_TOL: f64 = 2.0 * 1.5e-4 * STEPS as f64;
+const WEIGHT_MEDIAN_TOL: f64 = 1e-4;
+
+fn mpirun() -> Option<&'static str> {
+    let found = Command::new("mpirun").arg("--version").output().is_ok();
+    if !found {
+        assert!(
+            std::env::var_os("GAGAVATAR_REQUIRE_MPI").is_none(),
+            "GAGAVATAR_REQUIRE_MPI is set but mpirun is missing"
+        );
+        eprintln!("skipping: no mpirun (Debian: openmpi-bin)");
+        return None;
+    }
+    Some("mpirun")
+}
+
+fn check(o: Output, what: &str) -> String {
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(
+        o.status.success(),
+        "{what} failed:\n{}\n{err}",
+        String::from_utf8_lossy(&o.stdout)
+    );
+    err
+}
+
+fn train(ranks: usize, args: &[&str]) -> String {
+    let mut c = if ranks == 1 {
+        Command::new(BIN)
+    } else {
+        let mut c = Command::new("mpirun");
+        c.args(["--oversubscribe", "-n", &ranks.to_string(), BIN]);
+        c
+    };
+    // OpenMPI refuses root (CI containers) unless told.
+    c.env("OMPI_ALLOW_RUN_AS_ROOT", "1")
+        .env("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
+        .env("OMPI_MCA_rmaps_base_oversubscribe", "1");
+    c.arg("train");
+    let o = c.args(args).args(["--threads", "1"]).output().unwrap();
+    check(o, &format!("{ranks} rank(s): train {args:?}"))
+}
+
+fn metrics(run: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(run.join("metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
+fn weights(run: &Path) -> Vec<(String, Vec<f32>)> {
+    let mut w: Vec<(String, Vec<f32>)> =
+        gagavatar_net::checkpoint::read_weights(&run.join("weights.safetensors"))
+            .unwrap()
+            .tensors
+            .into_iter()
+            .map(|(k, t)| (k, t.flatten_all().unwrap().to_vec1::<f32>().unwrap()))
+            .collect();
+    w.sort_by(|a, b| a.0.cmp(&b.0));
+    w
+}
+
+fn compare(what: &str, a: &Path, b: &Path) {
+    let (ma, mb) = (metrics(a), metrics(b));
+    for (x, y) in ma.iter().zip(&mb).take(3) {
+        for key in ["loss", "grad_norm", "img", "box"] {
+            let (u, v) = (x[key].as_f64().unwrap(), y[key].as_f64().unwrap());
+            let rel = (u - v).abs() / u.abs().max(1e-12);
+            assert!(
+                rel <= STEP_RTOL,
+                "{what}: step {}: {key} {u} vs {v} (relative {rel:e} > {STEP_RTOL:e})",
+                x["step"]
+            );
+        }
+    }
+    let mut diffs: Vec<f64> = Vec::new();
+    let mut worst = (0f64, String::new(), 0usize);
+    for ((ka, va), (kb, vb)) in weights(a).iter().zip(&weights(b)) {
+        assert_eq!(ka, kb, "{what}: keys differ");
+        for (i, (x, y)) in va.iter().zip(vb).enumerate() {
+            let d = (x - y).abs() as f64;
+            if d > worst.0 {
+                worst = (d, ka.clone(), i);
+            }
+            diffs.push(d);
+        }
+    }
+    diffs.sort_by(f64::total_cmp);
+    let median = diffs[diffs.len() / 2];
+    eprintln!(
+        "{what}: weights after {STEPS} steps: max abs {:e} ({}[{}]), median {median:e}",
+        worst.0, worst.1, worst.2
+    );
+    assert!(
+        worst.0 <= WEIGHT_TOL,
+        "{what}: {}[{}] differs by {:e} > {WEIGHT_TOL:e}",
+        worst.1,
+        worst.2,
+        worst.0
+    );
+    assert!(
+        median <= WEIGHT_MEDIAN_TOL,
+        "{what}: median difference {median:e}"
+    );
+}
+
+#[test]
+fn two_ranks_follow_one_process_and_resume_with_another_count() {
+    if mpirun().is_none() {
+        return;
+    }
+    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train_mpi");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let s = |p: &Path| p.display().to_string();
+    let data = dir.join("data");
+    check(
+        Command::new(BIN)
+            .args([
+                "synth-data",
+                "-o",
+                &s(&data),
+                "--identities",
+                "3",
+                "--frames",
+                "3",
+            ])
+            .args(["--size", "64", "--holdout", "1"])
+            .output()
+            .unwrap(),
+        "synth-data",
+    );
+    let steps = STEPS.to_string();
+    let common = |out: &Path, steps: &str| -> Vec<String> {
+        [
+            "--preset",
+            "tiny",
+            "--data",
+            &s(&data),
+            "--steps",
+            steps,
+            "--seed",
+            "1",
+            "--batch",
+            "2",
+            "--val-every",
+            "0",
+            "--out",
+            &s(out),
+        ]
+        .map(String::from)
+        .to_vec()
+    };
+    let strs = |v: &[String]| {
+        v.iter()
+            .map(String::as_str)
+            .collect::<Vec<_>>()
+            .join("\u{0}")
+    };
+    let run = |ranks: usize, v: Vec<String>| {
+        let joined = strs(&v);
+        let args: Vec<&str> = joined.split('\u{0}').collect();
+        train(ranks, &args)
+    };
+
+    let one = dir.join("one");
+    run(1, common(&one, &steps));
+    let two = dir.join("two");
+    let err = run(2, common(&two, &steps));
+    assert!(err.contains("data-parallel: 2 ranks"), "{err}");
+    // Rank 0 alone reports and writes: one header, one metrics line per logged step.
+    assert_eq!(err.matches("model `tiny`").count(), 1, "{err}");
+    let logged: Vec<u64> = metrics(&two)
+        .iter()
+        .map(|m| m["step"].as_u64().unwrap())
+        .collect();
+    let mut unique = logged.clone();
+    unique.dedup();
+    assert_eq!(logged, unique, "metrics lines repeated");
+    assert_eq!(logged.last(), Some(&STEPS));
+    compare("2 ranks vs 1 process at batch 2", &one, &two);
+
+    // Half the steps on two ranks, resumed for the rest on one, against the same split run
+    // on one process (a run started for 10 steps decays its learning rate over 10).
+    let half = |name: &str, first: usize| {
+        let d = dir.join(name);
+        run(first, common(&d, &(STEPS / 2).to_string()));
+        train(1, &["--resume", &s(&d), "--steps", &steps]);
+        d
+    };
+    let (a, b) = (half("half_one", 1), half("half_two", 2));
+    compare("10 steps on 2 ranks + 10 resumed on 1, vs all on 1", &a, &b);
+
+    // A batch that does not split over the ranks is refused by every rank, before writing.
+    let bad = dir.join("bad");
+    let mut v = common(&bad, "2");
+    let i = v.iter().position(|a| a == "--batch").unwrap();
+    v[i + 1] = "3".into();
+    let joined = strs(&v);
+    let args: Vec<&str> = joined.split('\u{0}').collect();
+    let o = Command::new("mpirun")
+        .args(["--oversubscribe", "-n", "2", BIN, "train"])
+        .args(&args)
+        .env("OMPI_ALLOW_RUN_AS_ROOT", "1")
+        .env("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
+        .output()
+        .unwrap();
+    assert!(!o.status.success(), "batch 3 over 2 ranks succeeded");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("does not split into 2 equal shares"), "{err}");
+    assert!(!bad.join("checkpoint.safetensors").exists());
+}
