@@ -48,8 +48,11 @@ if [ "$PWD" != "$BUILT_AT" ] && [ ! -e "$BUILT_AT" ]; then
     mkdir -p "$(dirname "$BUILT_AT")" && ln -s "$PWD" "$BUILT_AT"
 fi
 
-for f in .dev/*.gz; do gunzip -kf "$f"; done
-chmod +x .dev/gagavatar .dev/gpu_tests
+# Unpacked outside the checkout (a dry run must leave no 150 MiB of binaries in .dev/, which
+# would push the next device call's working tree over its limit).
+BIN=$(mktemp -d)
+for f in .dev/*.gz; do gunzip -c "$f" > "$BIN/$(basename "$f" .gz)"; done
+chmod +x "$BIN/gagavatar" "$BIN/gpu_tests"
 
 log "adapter"
 nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm --format=csv > "$OUT/nvidia_smi.csv" 2>&1
@@ -59,7 +62,7 @@ log "bench drive, $PRESET, $FRAMES frames: f32 (small and large Gaussians), f16 
 for run in small large f16; do
     regime=$run precision=f32
     [ "$run" = f16 ] && regime=small precision=f16
-    timeout 150 .dev/gagavatar bench drive --device gpu --gpu-precision "$precision" \
+    timeout 150 "$BIN/gagavatar" bench drive --device gpu --gpu-precision "$precision" \
         --preset "$PRESET" --frames "$FRAMES" --regime "$regime" --json "$OUT/bench_$run.json" \
         > "$OUT/bench_drive_$run.txt" 2>&1
     echo "exit $? ($run)" >> "$OUT/summary.txt"
@@ -68,7 +71,7 @@ done
 
 if [ "${SKIP_TESTS:-0}" != 1 ]; then
     log "GPU parity tests (every one, release size included)"
-    GAGAVATAR_REQUIRE_GPU_TESTS=1 timeout 240 .dev/gpu_tests $TESTS --include-ignored \
+    GAGAVATAR_REQUIRE_GPU_TESTS=1 timeout 240 "$BIN/gpu_tests" $TESTS --include-ignored \
         --test-threads 1 --nocapture > "$OUT/gpu_tests.txt" 2>&1
     echo "exit $?" >> "$OUT/summary.txt"
     grep -E "^test |test result|max abs|mean abs|within|panicked|differ|skipping" "$OUT/gpu_tests.txt" >> "$OUT/summary.txt"
@@ -78,7 +81,7 @@ log "convolution tilings, $SWEEP_FRAMES frames each"
 i=0
 for entry in "${TUNES[@]}"; do
     precision=${entry%%|*} tune=${entry#*|}
-    GAGAVATAR_GPU_TUNE="$tune" timeout 90 .dev/gagavatar bench drive --device gpu \
+    GAGAVATAR_GPU_TUNE="$tune" timeout 90 "$BIN/gagavatar" bench drive --device gpu \
         --gpu-precision "$precision" --preset "$PRESET" --frames "$SWEEP_FRAMES" \
         --json "$OUT/bench_tune_$i.json" > "$OUT/bench_tune_$i.txt" 2>&1
     rc=$?
