@@ -9,8 +9,8 @@
 # debs in .gl/); run there with carry [".gl", ".dev"]:
 #   bash tools/device/gpu_check.sh
 set -u
-# FRAMES, SWEEP_FRAMES, PRESET and TESTS (a test-name filter) shrink the run for a dry run on
-# lavapipe; SKIP_TESTS=1 leaves the parity tests out.
+# FRAMES, SWEEP_FRAMES, REENACT_FRAMES, PRESET and TESTS (a test-name filter) shrink the run for
+# a dry run on lavapipe; SKIP_TESTS=1 leaves the parity tests out.
 FRAMES=${FRAMES:-300}
 SWEEP_FRAMES=${SWEEP_FRAMES:-40}
 PRESET=${PRESET:-release}
@@ -67,6 +67,18 @@ for run in small large f16; do
         > "$OUT/bench_drive_$run.txt" 2>&1
     echo "exit $? ($run)" >> "$OUT/summary.txt"
     tail -16 "$OUT/bench_drive_$run.txt" >> "$OUT/summary.txt"
+done
+
+log "reenact end to end, $PRESET seeded weights, ${REENACT_FRAMES:-354} frames (records cached: no tracking), f16 then f32"
+"$BIN/gagavatar" init-weights --preset "$PRESET" --seed 1 -o "$BIN/weights.safetensors" > /dev/null 2>&1
+for precision in f16 f32; do
+    timeout 150 "$BIN/gagavatar" reenact --ckpt "$BIN/weights.safetensors" \
+        --source assets/demo/source.png --source-record assets/demo/source.json \
+        --driver .dev/driver354.json --max-frames "${REENACT_FRAMES:-354}" \
+        --device gpu --gpu-precision "$precision" -o "$BIN/reenact_$precision.mp4" \
+        > "$OUT/reenact_$precision.txt" 2>&1
+    echo "exit $? (reenact, $precision)" >> "$OUT/summary.txt"
+    grep -E "^time:|^wrote|^error" "$OUT/reenact_$precision.txt" >> "$OUT/summary.txt"
 done
 
 if [ "${SKIP_TESTS:-0}" != 1 ]; then
