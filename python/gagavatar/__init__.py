@@ -129,7 +129,9 @@ class Engine:
     `flame=None` uses the asset the weights name (the built-in synthetic one for the demo model;
     the release's weights need `FLAME_with_eye.pt`). `device` is `cpu`, `gpu` or `auto`.
     `precision` is the CPU model's arithmetic: `f32` (the release's) or `bf16` (bf16 products
-    with f32 sums; faster on CPUs with AVX512-BF16, an `Error` on others).
+    with f32 sums; faster on CPUs with AVX512-BF16, an `Error` on others). `gpu_precision` is
+    the GPU renderer's convolutions: `auto` (f16 on the tensor cores where the GPU has them,
+    else f32), `f32`, or `f16` (an `Error` on a GPU without tensor cores).
     """
 
     def __init__(
@@ -140,6 +142,7 @@ class Engine:
         preset: Optional[str] = None,
         fresh_noise: bool = False,
         precision: str = "f32",
+        gpu_precision: str = "auto",
     ):
         self._e = _native.Engine(
             os.fspath(ckpt),
@@ -148,12 +151,20 @@ class Engine:
             preset,
             fresh_noise,
             precision,
+            gpu_precision,
         )
 
     @classmethod
-    def demo(cls, device: str = "cpu", precision: str = "f32") -> "Engine":
+    def demo(
+        cls, device: str = "cpu", precision: str = "f32", gpu_precision: str = "auto"
+    ) -> "Engine":
         """The shipped demo model (the `tiny` preset trained on synthetic heads)."""
-        return cls(demo_file("weights.safetensors"), device=device, precision=precision)
+        return cls(
+            demo_file("weights.safetensors"),
+            device=device,
+            precision=precision,
+            gpu_precision=gpu_precision,
+        )
 
     @property
     def image_size(self) -> int:

@@ -19,6 +19,8 @@ class Engine:
         device: str = "cpu",
         preset: Optional[str] = None,
         fresh_noise: bool = False,
+        precision: str = "f32",
+        gpu_precision: str = "auto",
     ) -> None: ...
     @property
     def image_size(self) -> int: ...

@@ -89,12 +89,15 @@ pub struct Engine {
     inner: Arc<CoreEngine>,
     device: DeviceChoice,
     gpu: Option<Arc<Gpu>>,
+    /// The GPU drive's knobs with the chosen convolution precision.
+    tuning: gagavatar_gpu::Tuning,
 }
 
 #[pymethods]
 impl Engine {
     #[new]
-    #[pyo3(signature = (ckpt, flame=None, device="cpu", preset=None, fresh_noise=false, precision="f32"))]
+    #[pyo3(signature = (ckpt, flame=None, device="cpu", preset=None, fresh_noise=false, precision="f32", gpu_precision="auto"))]
+    #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
         ckpt: PathBuf,
@@ -103,8 +106,10 @@ impl Engine {
         preset: Option<String>,
         fresh_noise: bool,
         precision: &str,
+        gpu_precision: &str,
     ) -> PyResult<Self> {
         let precision: gagavatar_avatar::Precision = precision.parse().map_err(bad)?;
+        let gpu_precision: gagavatar_gpu::GpuPrecision = gpu_precision.parse().map_err(to_py)?;
         let device = match device {
             "cpu" => DeviceChoice::Cpu,
             "gpu" => DeviceChoice::Gpu,
@@ -138,10 +143,16 @@ impl Engine {
                 .ok()
                 .map(Arc::new),
         };
+        let tuning = gagavatar_gpu::Tuning::from_env().map_err(to_py)?;
+        let tuning = match &gpu {
+            Some(g) => tuning.with_precision(gpu_precision, g).map_err(to_py)?,
+            None => tuning,
+        };
         Ok(Engine {
             inner: Arc::new(inner),
             device,
             gpu,
+            tuning,
         })
     }
 
@@ -362,7 +373,8 @@ impl Engine {
     ) -> PyResult<Avatar> {
         let engine = self.inner.clone();
         let gpu = self.gpu.clone();
-        py.detach(move || build_avatar(&engine, gpu, &img, &record))
+        let tuning = self.tuning.clone();
+        py.detach(move || build_avatar(&engine, gpu, &tuning, &img, &record))
             .map_err(bad)
     }
 }
@@ -371,19 +383,13 @@ impl Engine {
 fn build_avatar(
     engine: &CoreEngine,
     gpu: Option<Arc<Gpu>>,
+    tuning: &gagavatar_gpu::Tuning,
     img: &image::RgbImage,
     record: &TrackedFrame,
 ) -> Result<Avatar, String> {
     let avatar = lined(engine.avatar(img, record))?;
     let drive = match gpu {
-        Some(g) => {
-            // f16 tensor-core convolutions where the GPU has them, as the CLI's default.
-            let tuning = lined(
-                gagavatar_gpu::Tuning::from_env()
-                    .and_then(|t| t.with_precision(gagavatar_gpu::GpuPrecision::Auto, &g)),
-            )?;
-            Drives::Gpu(Box::new(lined(avatar.gpu_drive(g, &tuning))?))
-        }
+        Some(g) => Drives::Gpu(Box::new(lined(avatar.gpu_drive(g, tuning))?)),
         None => Drives::Cpu(Box::new(avatar.cpu_drive())),
     };
     Ok(Avatar {

@@ -117,6 +117,7 @@ def test_bad_inputs_raise_one_line_errors(engine, source, tmp_path):
         lambda: ga.Engine(tmp_path / "missing.pt"),
         lambda: ga.Engine(DEMO / "weights.safetensors", device="tpu"),
         lambda: ga.Engine(DEMO / "weights.safetensors", precision="fp8"),
+        lambda: ga.Engine(DEMO / "weights.safetensors", gpu_precision="f8"),
         lambda: ga.Engine(DEMO / "weights.safetensors", flame=tmp_path / "no_flame.pt"),
         lambda: engine.avatar(np.zeros((8, 8), np.uint8), source),
         lambda: engine.avatar(DEMO / "source.png", {k: v for k, v in source.items()
@@ -158,7 +159,7 @@ def test_bf16_renders_close_to_f32(avatar, source):
 
 def test_the_gpu_drive_matches_the_cpu(source):
     try:
-        gpu = ga.Engine.demo(device="gpu")
+        gpu = ga.Engine.demo(device="gpu", gpu_precision="f32")
     except ga.Error as e:
         if os.environ.get("GAGAVATAR_REQUIRE_GPU_TESTS", "0") not in ("", "0"):
             raise

@@ -64,9 +64,9 @@ for run in small large f16; do
     [ "$run" = f16 ] && regime=small precision=f16
     timeout 150 "$BIN/gagavatar" bench drive --device gpu --gpu-precision "$precision" \
         --preset "$PRESET" --frames "$FRAMES" --regime "$regime" --json "$OUT/bench_$run.json" \
-        > "$OUT/bench_drive_$run.txt" 2>&1
+        --dispatches > "$OUT/bench_drive_$run.txt" 2>&1
     echo "exit $? ($run)" >> "$OUT/summary.txt"
-    tail -16 "$OUT/bench_drive_$run.txt" >> "$OUT/summary.txt"
+    tail -33 "$OUT/bench_drive_$run.txt" >> "$OUT/summary.txt"
 done
 
 log "reenact end to end, $PRESET seeded weights, ${REENACT_FRAMES:-354} frames (records cached: no tracking), f16 then f32"

@@ -40,6 +40,10 @@ pub struct DriveBench {
     /// CPU worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Also time every dispatch of one frame (GPU timestamps, each dispatch in a pass of its
+    /// own) and print the kernels (by name and grid) that take the most time; GPU only.
+    #[arg(long)]
+    dispatches: bool,
     /// Also write the figures as JSON (adapter features, per-stage ms, frame ms, frames/s,
     /// GPU memory, tuning) to this file; GPU only.
     #[arg(long)]
@@ -217,6 +221,26 @@ fn bench_gpu(
             per_stage[k].push(*v);
         }
     }
+    // Per kernel and grid (the layers of one shape share both), summed over the frame.
+    let mut by_kernel: Vec<(String, &'static str, usize, f64)> = Vec::new();
+    let mut have_timestamps = true;
+    if a.dispatches {
+        match drive.profile_dispatches(&codes(rng, flame.config.n_exp, 0), tm)? {
+            Some(times) => {
+                for t in times {
+                    match by_kernel.iter_mut().find(|k| k.0 == t.label) {
+                        Some(k) => {
+                            k.2 += 1;
+                            k.3 += t.ms;
+                        }
+                        None => by_kernel.push((t.label, t.stage, 1, t.ms)),
+                    }
+                }
+                by_kernel.sort_by(|x, y| y.3.total_cmp(&x.3));
+            }
+            None => have_timestamps = false,
+        }
+    }
     let g = drive.gpu();
     // For the tuning notes (crates/gpu/README.md): what faster kernels could use on this adapter.
     let has = |f: wgpu_features::Features| g.adapter_features.contains(f);
@@ -288,6 +312,20 @@ fn bench_gpu(
         wall.last().copied().unwrap_or(f64::NAN),
         1e3 / med
     );
+    if a.dispatches {
+        if have_timestamps {
+            let total: f64 = by_kernel.iter().map(|k| k.3).sum();
+            println!(
+                "  dispatches of one frame, each timed alone ({} kernels and grids, {total:.2} ms in all; the 15 costliest):",
+                by_kernel.len()
+            );
+            for (label, stage, calls, ms) in by_kernel.iter().take(15) {
+                println!("    {label:<52} {calls:>3} x  {ms:>8.3} ms  ({stage})");
+            }
+        } else {
+            println!("  dispatches: this adapter has no timestamp queries");
+        }
+    }
     let mib = g.allocated_bytes() as f64 / (1 << 20) as f64;
     println!(
         "  GPU buffers allocated: {mib:.0} MiB; (tile, Gaussian) pair capacity {}",
@@ -323,6 +361,12 @@ fn bench_gpu(
             "frames_per_s": 1e3 / med,
             "gpu_buffers_mib": mib,
             "pair_capacity": drive.pair_capacity(),
+            "dispatches": by_kernel
+                .iter()
+                .map(|(label, stage, calls, ms)| {
+                    serde_json::json!({"kernel": label, "stage": stage, "calls": calls, "ms": ms})
+                })
+                .collect::<Vec<_>>(),
         });
         let text = serde_json::to_string_pretty(&doc)? + "\n";
         gagavatar_formats::atomic::write_atomic(path, text.as_bytes())

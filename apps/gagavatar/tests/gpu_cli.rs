@@ -297,8 +297,17 @@ fn bench_json_and_gpu_precision() {
     let json_s = json.to_str().unwrap();
     let out = run(
         &[
-            "bench", "drive", "--device", "gpu", "--preset", "tiny", "--frames", "2", "--json",
+            "bench",
+            "drive",
+            "--device",
+            "gpu",
+            "--preset",
+            "tiny",
+            "--frames",
+            "2",
+            "--json",
             json_s,
+            "--dispatches",
         ],
         &[],
     );
@@ -321,6 +330,16 @@ fn bench_json_and_gpu_precision() {
     let stages = doc["stage_ms"].as_object().unwrap();
     assert!(stages.contains_key("splat: raster"), "{doc}");
     let tensor_cores = doc["tensor_core_convs"].as_bool().unwrap();
+    if doc["adapter"]["timestamps"].as_bool().unwrap() {
+        let d = doc["dispatches"].as_array().unwrap();
+        assert!(d.len() > 10, "{doc}");
+        assert!(d.iter().all(|k| k["ms"].as_f64().unwrap() >= 0.0), "{doc}");
+        assert!(
+            d.iter()
+                .any(|k| k["kernel"].as_str().unwrap().starts_with("conv")),
+            "{doc}"
+        );
+    }
 
     let f16 = run(
         &[

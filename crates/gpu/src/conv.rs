@@ -365,6 +365,7 @@ impl Ops<'_> {
             (c.h * c.w).div_ceil(bn as usize) as u32,
             c.cout.div_ceil(bm as usize) as u32,
         ];
+        let note = format!("{}->{} {}x{} k{}", c.cin, c.cout, c.h, c.w, c.k);
         if p.split == 0 {
             let k = self.gpu.kernel(name, source, &consts(0), &binds)?;
             let u = self.gpu.uniform("conv", &params(1));
@@ -384,7 +385,8 @@ impl Ops<'_> {
                 k,
                 g,
                 Grid::Fixed([grid_xy[0], grid_xy[1], 1]),
-            )]);
+            )
+            .with_note(note)]);
         }
         let k = self
             .gpu
@@ -429,8 +431,9 @@ impl Ops<'_> {
             ],
         )?;
         Ok(vec![
-            Step::new(k, g, Grid::Fixed([grid_xy[0], grid_xy[1], p.slices])),
-            Step::new(kf, gf, linear_grid(c.cout * c.h * c.w, 256)),
+            Step::new(k, g, Grid::Fixed([grid_xy[0], grid_xy[1], p.slices]))
+                .with_note(note.clone()),
+            Step::new(kf, gf, linear_grid(c.cout * c.h * c.w, 256)).with_note(note),
         ])
     }
 

@@ -104,6 +104,15 @@ fn rgb8(img: &[f32], size: usize) -> Vec<u8> {
     out
 }
 
+/// One dispatch's GPU time ([`GpuDrive::profile_dispatches`]).
+#[derive(Debug, Clone)]
+pub struct DispatchTime {
+    pub stage: &'static str,
+    /// Kernel name and grid.
+    pub label: String,
+    pub ms: f64,
+}
+
 impl GpuDrive {
     /// [`GpuDrive::new`] with the parts of a loaded model.
     pub fn from_model(
@@ -510,6 +519,77 @@ impl GpuDrive {
                 })
             }
         }
+    }
+
+    /// GPU time of every dispatch of one frame (each in a pass of its own, timed by
+    /// timestamp queries), in order: which stage, the kernel and grid, milliseconds. `None`
+    /// on an adapter without timestamp queries.
+    pub fn profile_dispatches(
+        &mut self,
+        codes: &FrameCodes,
+        transform: &[[f64; 4]; 3],
+    ) -> Result<Option<Vec<DispatchTime>>> {
+        if self.timestamps.is_none() {
+            return Ok(None);
+        }
+        self.frame(codes, transform)?;
+        self.prepare(codes, transform)?;
+        let steps: Vec<(&'static str, &Step)> = self
+            .stages()
+            .into_iter()
+            .enumerate()
+            .flat_map(|(i, st)| st.into_iter().map(move |s| (STAGES[i], s)))
+            .collect();
+        let n = 2 * steps.len() as u32;
+        let set = self.gpu.device.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some("dispatch timestamps"),
+            ty: wgpu::QueryType::Timestamp,
+            count: n,
+        });
+        let bytes = 8 * n as u64;
+        let resolve = self.gpu.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("dispatch timestamps"),
+            size: bytes,
+            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        let read = self.gpu.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("dispatch timestamps read-back"),
+            size: bytes,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = self
+            .gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+        for (i, (_, s)) in steps.iter().enumerate() {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: None,
+                timestamp_writes: Some(wgpu::ComputePassTimestampWrites {
+                    query_set: &set,
+                    beginning_of_pass_write_index: Some(2 * i as u32),
+                    end_of_pass_write_index: Some(2 * i as u32 + 1),
+                }),
+            });
+            s.record(&mut pass);
+        }
+        enc.resolve_query_set(&set, 0..n, &resolve, 0);
+        enc.copy_buffer_to_buffer(&resolve, 0, &read, 0, bytes);
+        self.gpu.queue.submit([enc.finish()]);
+        let ticks: Vec<u64> = bytemuck::pod_collect_to_vec(&map_read(&self.gpu, &read, bytes)?);
+        let period = self.gpu.queue.get_timestamp_period() as f64;
+        Ok(Some(
+            steps
+                .iter()
+                .enumerate()
+                .map(|(i, (stage, s))| DispatchTime {
+                    stage,
+                    label: s.label(),
+                    ms: ticks[2 * i + 1].saturating_sub(ticks[2 * i]) as f64 * period * 1e-6,
+                })
+                .collect(),
+        ))
     }
 
     /// Frames rendered so far.

@@ -324,6 +324,8 @@ pub struct Step {
     pub kernel: Arc<Kernel>,
     pub group: wgpu::BindGroup,
     pub grid: Grid,
+    /// What the dispatch computes, for profiles (e.g. a convolution's shape).
+    pub note: Option<String>,
 }
 
 impl Step {
@@ -332,6 +334,24 @@ impl Step {
             kernel,
             group,
             grid,
+            note: None,
+        }
+    }
+
+    pub fn with_note(mut self, note: String) -> Self {
+        self.note = Some(note);
+        self
+    }
+
+    /// The kernel's name and its grid, e.g. `conv_mma 64x8x1` (for per-dispatch profiles).
+    pub fn label(&self) -> String {
+        let grid = match &self.grid {
+            Grid::Fixed([x, y, z]) => format!("{x}x{y}x{z}"),
+            Grid::Indirect(..) => "(indirect)".into(),
+        };
+        match &self.note {
+            Some(n) => format!("{} {n} [{grid}]", self.kernel.name),
+            None => format!("{} [{grid}]", self.kernel.name),
         }
     }
 
