@@ -267,8 +267,7 @@ pub fn run_train(a: TrainArgs) -> Result<()> {
         Run::create_with(cfg, out, a.force, &dev, &monitor, ranks.clone())?
     };
     if !lead {
-        let summary = run.train(&monitor)?;
-        let _ = summary;
+        run.train(&monitor)?;
         return Ok(());
     }
     if ranks.size() > 1 {

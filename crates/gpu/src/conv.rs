@@ -13,9 +13,14 @@ use crate::tuning::{ConvTile, MmaTile, Tuning};
 fn with_epilogue(src: &str) -> String {
     format!("{src}\n{}", include_str!("shaders/conv_epilogue.wgsl"))
 }
-static CONV: LazyLock<String> = LazyLock::new(|| with_epilogue(include_str!("shaders/conv.wgsl")));
+/// The two convolution kernels (f32 and tensor-core) share their parameters, buffers, im2col
+/// read and output write.
+fn with_io(src: &str) -> String {
+    with_epilogue(&format!("{src}\n{}", include_str!("shaders/conv_io.wgsl")))
+}
+static CONV: LazyLock<String> = LazyLock::new(|| with_io(include_str!("shaders/conv.wgsl")));
 static CONV_MMA: LazyLock<String> =
-    LazyLock::new(|| with_epilogue(include_str!("shaders/conv_mma.wgsl")));
+    LazyLock::new(|| with_io(include_str!("shaders/conv_mma.wgsl")));
 static CONV_FINISH: LazyLock<String> =
     LazyLock::new(|| with_epilogue(include_str!("shaders/conv_finish.wgsl")));
 const RESIZE: &str = include_str!("shaders/resize.wgsl");
@@ -695,14 +700,9 @@ mod tests {
     /// checks it).
     #[test]
     fn mma_convolutions_match_a_direct_reference() {
-        let Some(g) = gpu() else { return };
-        if !g.mma_f16 {
-            eprintln!(
-                "skipping: {} has no 16x16x16 f16 cooperative matrices",
-                g.describe()
-            );
+        let Some(g) = crate::testutil::mma_gpu() else {
             return;
-        }
+        };
         check_conv_cases(
             g,
             &[

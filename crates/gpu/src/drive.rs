@@ -653,6 +653,16 @@ mod tests {
         }
     }
 
+    /// The model of `cfg` with seeded weights.
+    fn seeded_model(cfg: &ModelConfig, seed: u64) -> GagAvatar {
+        let map: HashMap<String, Tensor> = init_weights(cfg, seed)
+            .unwrap()
+            .into_iter()
+            .map(|(k, (s, v))| (k, Tensor::from_vec(v, s, &Device::Cpu).unwrap()))
+            .collect();
+        build_model(cfg, map, &Device::Cpu).unwrap()
+    }
+
     fn flame_setup(seed: u64) -> (FlameModel, FlameIdentity) {
         let model = FlameModel::new(
             &synthesize(seed),
@@ -667,9 +677,6 @@ mod tests {
         (model, identity)
     }
 
-    /// The whole tiny model: GPU frames against `GagAvatar::drive` on an avatar from
-    /// `reconstruct`, for several frames through the same pipeline, with fixed and seeded
-    /// noise, and the ablation without renderer.
     /// Frames rendered two in flight give the bytes of frames rendered one by one, also when
     /// the pair buffers start too small and grow part way through (the camera comes closer
     /// each frame, so later frames need more pairs).
@@ -677,12 +684,7 @@ mod tests {
     fn pipelined_frames_equal_frames_one_by_one() {
         let Some(g) = shared_gpu() else { return };
         let cfg = ModelConfig::tiny();
-        let data = init_weights(&cfg, 4).unwrap();
-        let map: HashMap<String, Tensor> = data
-            .into_iter()
-            .map(|(k, (s, v))| (k, Tensor::from_vec(v, s, &Device::Cpu).unwrap()))
-            .collect();
-        let model = build_model(&cfg, map, &Device::Cpu).unwrap();
+        let model = seeded_model(&cfg, 4);
         let (flame, identity) = flame_setup(2);
         let size = cfg.image_size;
         let mut rng = Rng::new(8);
@@ -745,6 +747,9 @@ mod tests {
         }
     }
 
+    /// The whole tiny model: GPU frames against `GagAvatar::drive` on an avatar from
+    /// `reconstruct`, for several frames through the same pipeline, with fixed and seeded
+    /// noise, and the ablation without renderer.
     #[test]
     fn tiny_drive_matches_gagavatar_drive() {
         let Some(g) = shared_gpu() else { return };
@@ -755,12 +760,7 @@ mod tests {
         ] {
             let mut cfg = ModelConfig::tiny();
             cfg.no_neural_renderer = variant == "no renderer";
-            let data = init_weights(&cfg, 4).unwrap();
-            let map: HashMap<String, Tensor> = data
-                .into_iter()
-                .map(|(k, (s, v))| (k, Tensor::from_vec(v, s, &Device::Cpu).unwrap()))
-                .collect();
-            let model = build_model(&cfg, map, &Device::Cpu).unwrap();
+            let model = seeded_model(&cfg, 4);
             let (flame, identity) = flame_setup(2);
             let size = cfg.image_size;
             let mut rng = Rng::new(3);

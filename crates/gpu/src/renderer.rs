@@ -763,12 +763,7 @@ pub(crate) mod tests {
     /// the tiny and the release size, where the device has them.
     #[test]
     fn mma_renderer_matches_the_cpu() {
-        let Some(g) = gpu() else { return };
-        if !g.mma_f16 {
-            eprintln!(
-                "skipping: {} has no 16x16x16 f16 cooperative matrices",
-                g.describe()
-            );
+        if crate::testutil::mma_gpu().is_none() {
             return;
         }
         let t = Tuning {

@@ -31,6 +31,21 @@ pub fn gpu() -> Option<&'static Gpu> {
     }
 }
 
+/// The tests' device where it runs the tensor-core kernels ([`Gpu::mma_f16`]), or `None` with
+/// a printed reason (lavapipe has no cooperative matrices: those kernels are checked by the
+/// device run, see tools/device).
+pub fn mma_gpu() -> Option<&'static Gpu> {
+    let g = gpu()?;
+    if !g.mma_f16 {
+        eprintln!(
+            "skipping: {} has no 16x16x16 f16 cooperative matrices",
+            g.describe()
+        );
+        return None;
+    }
+    Some(g)
+}
+
 /// Largest absolute difference, with its index, expected and actual values (NaN counts as
 /// an infinite difference).
 pub fn max_diff(want: &[f32], got: &[f32]) -> (f64, usize, f32, f32) {

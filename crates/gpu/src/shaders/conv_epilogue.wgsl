@@ -1,5 +1,5 @@
 // The fused epilogue of one convolution output, in the CPU path's order. It is appended to
-// conv.wgsl and conv_finish.wgsl and reads their flags, parameters and buffers.
+// conv.wgsl, conv_mma.wgsl and conv_finish.wgsl and reads their flags, parameters and buffers.
 fn epilogue(acc: f32, co: u32, pix: u32, hw: u32) -> f32 {
     var v = acc;
     if (OUT_SCALE) {

@@ -313,17 +313,7 @@ pub(crate) mod tests {
         cam: &Camera,
         tuning: &Tuning,
     ) -> Vec<f32> {
-        let inputs = SplatInputs {
-            means: &scene.means,
-            features: &scene.features,
-            channels: scene.channels,
-            opacities: &scene.opacities,
-            scales: &scene.scales,
-            rotations: &scene.rotations,
-            background: bg,
-        };
-        let mut s = GpuSplat::new(g, tuning, &inputs, None, 0, cam.width, cam.height).unwrap();
-        s.render(g, cam).unwrap()
+        gpu_frame(g, scene, bg, cam, tuning).image
     }
 
     /// End to end at release size. Each half of the GPU's splatting is also compared on its
@@ -383,7 +373,13 @@ pub(crate) mod tests {
         image: Vec<f32>,
     }
 
-    fn gpu_frame(g: &Gpu, scene: &GaussianScene, bg: &[f32], cam: &Camera) -> GpuFrame {
+    fn gpu_frame(
+        g: &Gpu,
+        scene: &GaussianScene,
+        bg: &[f32],
+        cam: &Camera,
+        tuning: &Tuning,
+    ) -> GpuFrame {
         let inputs = SplatInputs {
             means: &scene.means,
             features: &scene.features,
@@ -393,16 +389,7 @@ pub(crate) mod tests {
             rotations: &scene.rotations,
             background: bg,
         };
-        let mut s = GpuSplat::new(
-            g,
-            &Tuning::default(),
-            &inputs,
-            None,
-            0,
-            cam.width,
-            cam.height,
-        )
-        .unwrap();
+        let mut s = GpuSplat::new(g, tuning, &inputs, None, 0, cam.width, cam.height).unwrap();
         let image = s.render(g, cam).unwrap();
         let n = scene.len();
         let tiles = cam.width.div_ceil(16) * cam.height.div_ceil(16);
@@ -477,7 +464,7 @@ pub(crate) mod tests {
         for regime in [Regime::Small, Regime::Large] {
             let (scene, cam) = avatar_scene(296, 5023, 32, regime, 1);
             let bg: Vec<f32> = (0..32).map(|c| 0.05 * c as f32 - 0.5).collect();
-            let f = gpu_frame(g, &scene, &bg, &cam);
+            let f = gpu_frame(g, &scene, &bg, &cam, &Tuning::default());
             let want = reference_raster(&f, &scene.features, &bg, cam.width, cam.height);
             let plane = cam.width * cam.height;
             assert_close_but_flips(
@@ -518,7 +505,7 @@ pub(crate) mod tests {
             .flat_map(|v| v.iter().copied())
             .collect();
             let cp = project(&CamK::<f32>::new(&cam), &geom);
-            let f = gpu_frame(g, &scene, &[0f32; 32], &cam);
+            let f = gpu_frame(g, &scene, &[0f32; 32], &cam, &Tuning::default());
             let (mut centre, mut conic, mut culled) = ((0f64, 0), (0f64, 0), 0usize);
             for (i, s) in cp.g.iter().enumerate() {
                 let gs = &f.splats[8 * i..8 * i + 6];
