@@ -5,8 +5,8 @@
 use candle_core::{bail, Result, Tensor};
 use candle_nn::VarBuilder;
 use gagavatar_ops::bf16::Bf16Linear;
-use gagavatar_ops::conv::Bf16Conv;
-use gagavatar_ops::{conv2d, Conv2dSpec, Precision};
+use gagavatar_ops::conv::{conv2d_fixed, Bf16Conv, WinogradCache};
+use gagavatar_ops::{Conv2dSpec, Precision};
 
 /// `nn.Conv2d` (square kernel, no groups or dilation).
 #[derive(Debug, Clone)]
@@ -16,6 +16,8 @@ pub struct Conv2d {
     pub spec: Conv2dSpec,
     /// The weight prepared for bf16 products, under `Precision::Bf16`.
     bf16: Option<Bf16Conv>,
+    /// The weight's Winograd transform, kept after the first inference call that runs Winograd.
+    wino: WinogradCache,
 }
 
 impl Conv2d {
@@ -40,6 +42,7 @@ impl Conv2d {
             bias,
             spec: Conv2dSpec { stride, padding },
             bf16: None,
+            wino: WinogradCache::default(),
         })
     }
 
@@ -50,6 +53,7 @@ impl Conv2d {
             bias,
             spec,
             bf16: None,
+            wino: WinogradCache::default(),
         }
     }
 
@@ -78,7 +82,14 @@ impl Conv2d {
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         match &self.bf16 {
             Some(packed) if !x.track_op() => packed.forward(x),
-            _ => conv2d(x, &self.weight, self.bias.as_ref(), self.spec),
+            _ => conv2d_fixed(
+                x,
+                &self.weight,
+                None,
+                self.bias.as_ref(),
+                self.spec,
+                &self.wino,
+            ),
         }
     }
 }

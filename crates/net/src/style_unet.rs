@@ -18,9 +18,9 @@ use std::f64::consts::SQRT_2;
 
 use candle_core::{bail, DType, Module, Result, Tensor, D};
 use candle_nn::{Linear, VarBuilder};
-use gagavatar_ops::conv::Bf16Conv;
+use gagavatar_ops::conv::{conv2d_fixed, Bf16Conv, WinogradCache};
 use gagavatar_ops::epilogue;
-use gagavatar_ops::{conv2d, resize, Conv2dSpec, Precision, ResizeMode};
+use gagavatar_ops::{resize, Conv2dSpec, Precision, ResizeMode};
 
 use crate::config::ModelConfig;
 use crate::layers::{fixed, Conv2d};
@@ -201,6 +201,9 @@ pub struct ModulatedConv {
     /// Under `Precision::Bf16`: the shared weight packed for the input-scaling path (the
     /// weight-modulation path packs each sample's weight per call).
     bf16: Option<Bf16Conv>,
+    /// The shared weight's Winograd transform (both paths scale it per image, see
+    /// `conv2d_fixed`).
+    wino: WinogradCache,
 }
 
 /// How [`ModulatedConv`] applies the style (see there); `Auto` picks the cheaper.
@@ -239,6 +242,7 @@ impl ModulatedConv {
             cout,
             k,
             bf16: None,
+            wino: WinogradCache::default(),
         })
     }
 
@@ -338,7 +342,7 @@ impl ModulatedConv {
                 let xs = x.broadcast_mul(&style.reshape((b, cin, 1, 1))?)?;
                 let mut y = match bf16 {
                     Some(packed) => packed.forward(&xs)?,
-                    None => conv2d(&xs, &self.weight, None, spec)?,
+                    None => conv2d_fixed(&xs, &self.weight, None, None, spec, &self.wino)?,
                 };
                 if let Some(f) = &factor {
                     y = y.broadcast_mul(&f.reshape((b, self.cout, 1, 1))?)?;
@@ -357,18 +361,22 @@ impl ModulatedConv {
                         Some(f) => f.narrow(0, i, 1)?.t()?.broadcast_mul(&s)?,
                         None => s,
                     };
-                    let rows = scale.dim(0)?;
-                    let wi = self
-                        .weight
-                        .broadcast_mul(&scale.reshape((rows, cin, 1, 1))?)?;
                     let xi = if b == 1 {
                         x.clone()
                     } else {
                         x.narrow(0, i, 1)?
                     };
+                    let scale = scale.broadcast_as((self.cout, cin))?;
                     outs.push(match bf16 {
-                        Some(_) => Bf16Conv::new(&wi, bias, spec)?.forward(&xi)?,
-                        None => conv2d(&xi, &wi, bias, spec)?,
+                        Some(_) => {
+                            let wi = self
+                                .weight
+                                .broadcast_mul(&scale.reshape((self.cout, cin, 1, 1))?)?;
+                            Bf16Conv::new(&wi, bias, spec)?.forward(&xi)?
+                        }
+                        None => {
+                            conv2d_fixed(&xi, &self.weight, Some(&scale), bias, spec, &self.wino)?
+                        }
                     });
                 }
                 if b == 1 {

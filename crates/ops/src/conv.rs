@@ -19,7 +19,10 @@ mod winograd;
 use candle_core::backend::BackendStorage;
 use candle_core::{
     bail, CpuStorage, CustomOp1, CustomOp2, CustomOp3, DType, Layout, Result, Shape, Tensor,
+    TensorId,
 };
+use rayon::prelude::*;
+use std::sync::{Arc, Mutex};
 
 /// Which kernel runs a convolution. The network uses [`ConvAlgo::Auto`]; the others exist so
 /// tests and benchmarks can compare the paths on the same shapes.
@@ -141,12 +144,13 @@ impl Bf16Conv {
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let g = Geom::new(x.dims(), &self.dims, self.spec)?;
         if use_winograd(&g, ConvAlgo::Auto) && winograd::eligible(&g) {
-            conv2d_with_algo(
+            conv2d_fixed(
                 x,
                 &self.weight,
+                None,
                 self.bias.as_ref(),
                 self.spec,
-                ConvAlgo::Winograd,
+                &self.wino,
             )
         } else {
             self.gemm_forward(x)
@@ -181,6 +185,202 @@ fn forward_impl<T: elem::Elem>(
         im2col::forward(x, w, bias, g, &mut y);
     }
     y
+}
+
+/// The Winograd transform of one fixed 3x3 weight, made by the layer's first Winograd call
+/// and reused by every later one: transforming a 256x256 filter bank costs about a tenth of
+/// running the layer at 74x74. It holds the transform of the last weight it was given (a layer
+/// whose weight tensor is replaced transforms the new one), and only ever grows by the
+/// layers that run Winograd (4x their weight's size).
+#[derive(Debug, Clone, Default)]
+pub struct WinogradCache(Arc<Mutex<Option<CachedTransform>>>);
+
+#[derive(Debug)]
+struct CachedTransform {
+    weight: TensorId,
+    u: Arc<Vec<f32>>,
+}
+
+impl WinogradCache {
+    fn transform(&self, id: TensorId, w: &[f32], g: &Geom) -> Arc<Vec<f32>> {
+        // A poisoned lock only means another thread panicked mid-transform: start afresh.
+        let mut slot = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        match &*slot {
+            Some(c) if c.weight == id && c.u.len() == 36 * g.cout * g.cin => c.u.clone(),
+            _ => {
+                let u = Arc::new(winograd::transform_weights(w, g.cout, g.cin));
+                *slot = Some(CachedTransform {
+                    weight: id,
+                    u: u.clone(),
+                });
+                u
+            }
+        }
+    }
+
+    /// Whether a transform is held (tests).
+    pub fn is_filled(&self) -> bool {
+        self.0.lock().map(|s| s.is_some()).unwrap_or(false)
+    }
+}
+
+/// Inference convolution with a fixed weight whose filters may be scaled:
+/// `conv2d(x, w * scale[co, ci], bias)`, `scale` [Cout, Cin] (StyleGAN2's modulated weight,
+/// per image). Where the layer runs Winograd the weight's transform comes from `cache` and is
+/// scaled in the transformed domain (`G (s g) G^T = s G g G^T`: 36 multiplies per filter instead
+/// of a transform), elsewhere the scaled weight is formed and convolved. Tracked inputs or a
+/// trainable weight take the differentiable path ([`conv2d`]) instead, so training is unchanged.
+pub fn conv2d_fixed(
+    x: &Tensor,
+    w: &Tensor,
+    scale: Option<&Tensor>,
+    bias: Option<&Tensor>,
+    spec: Conv2dSpec,
+    cache: &WinogradCache,
+) -> Result<Tensor> {
+    let g = Geom::new(x.dims(), w.dims(), spec)?;
+    if let Some(s) = scale {
+        if s.dims() != [g.cout, g.cin] {
+            bail!(
+                "conv2d: filter scale must be [{}, {}] for weight {:?}, got {:?}",
+                g.cout,
+                g.cin,
+                w.dims(),
+                s.dims()
+            );
+        }
+    }
+    let scaled = |w: &Tensor| -> Result<Tensor> {
+        match scale {
+            Some(s) => w.broadcast_mul(&s.reshape((g.cout, g.cin, 1, 1))?),
+            None => Ok(w.clone()),
+        }
+    };
+    let tracked = x.track_op()
+        || w.track_op()
+        || w.is_variable()
+        || scale.is_some_and(|s| s.track_op())
+        || bias.is_some_and(|b| b.track_op());
+    let winograd = match env_algo() {
+        Some(ConvAlgo::Winograd) => winograd::eligible(&g),
+        Some(_) => false,
+        None => use_winograd(&g, ConvAlgo::Auto),
+    };
+    let cpu_f32 = x.device().is_cpu() && x.dtype() == DType::F32 && w.dtype() == DType::F32;
+    if tracked || !winograd || !cpu_f32 {
+        return conv2d(x, &scaled(w)?, bias, spec);
+    }
+    let op = FixedConvOp {
+        spec,
+        cache: cache.clone(),
+        weight: w.id(),
+        scale: match scale {
+            Some(s) => Some(s.flatten_all()?.to_dtype(DType::F32)?.to_vec1::<f32>()?),
+            None => None,
+        },
+    };
+    let (x, w) = (x.contiguous()?, w.contiguous()?);
+    match bias {
+        Some(b) => x.apply_op3_no_bwd(&w, &b.to_dtype(DType::F32)?.contiguous()?, &op),
+        None => x.apply_op2_no_bwd(&w, &op),
+    }
+}
+
+/// [`conv2d_fixed`]'s Winograd run (f32, CPU, inference only).
+struct FixedConvOp {
+    spec: Conv2dSpec,
+    cache: WinogradCache,
+    weight: TensorId,
+    scale: Option<Vec<f32>>,
+}
+
+impl FixedConvOp {
+    fn run(&self, x: &[f32], w: &[f32], bias: Option<&[f32]>, g: &Geom) -> Vec<f32> {
+        let base = self.cache.transform(self.weight, w, g);
+        let mut y = elem::alloc_output(g.b * g.cout * g.oh * g.ow);
+        match &self.scale {
+            Some(s) => {
+                let mut u = elem::alloc_output::<f32>(base.len());
+                let slab = g.cout * g.cin;
+                u.par_chunks_mut(slab.max(1))
+                    .zip(base.par_chunks(slab.max(1)))
+                    .for_each(|(dst, src)| {
+                        for ((d, &b), &f) in dst.iter_mut().zip(src).zip(s) {
+                            *d = b * f;
+                        }
+                    });
+                winograd::forward(x, &u, bias, g, &mut y);
+            }
+            None => winograd::forward(x, &base, bias, g, &mut y),
+        }
+        y
+    }
+
+    fn storages<'a>(
+        s1: &'a CpuStorage,
+        l1: &Layout,
+        s2: &'a CpuStorage,
+        l2: &Layout,
+    ) -> Result<(&'a [f32], &'a [f32])> {
+        match (s1, s2) {
+            (CpuStorage::F32(x), CpuStorage::F32(w)) => Ok((
+                contiguous(x, l1, "conv2d", "input")?,
+                contiguous(w, l2, "conv2d", "weight")?,
+            )),
+            (x, w) => bail!(
+                "conv2d: the cached path needs f32 operands, got {:?} and {:?}",
+                x.dtype(),
+                w.dtype()
+            ),
+        }
+    }
+}
+
+impl CustomOp2 for FixedConvOp {
+    fn name(&self) -> &'static str {
+        "gagavatar-conv2d-fixed"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let g = Geom::new(l1.dims(), l2.dims(), self.spec)?;
+        let (x, w) = Self::storages(s1, l1, s2, l2)?;
+        Ok((CpuStorage::F32(self.run(x, w, None, &g)), g.out_shape()))
+    }
+}
+
+impl CustomOp3 for FixedConvOp {
+    fn name(&self) -> &'static str {
+        "gagavatar-conv2d-fixed-bias"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let g = Geom::new(l1.dims(), l2.dims(), self.spec)?;
+        let (x, w) = Self::storages(s1, l1, s2, l2)?;
+        let b = match s3 {
+            CpuStorage::F32(b) if l3.dims() == [g.cout] => contiguous(b, l3, "conv2d", "bias")?,
+            b => bail!(
+                "conv2d: bias must be f32 [{}], got {:?} {:?}",
+                g.cout,
+                b.dtype(),
+                l3.dims()
+            ),
+        };
+        Ok((CpuStorage::F32(self.run(x, w, Some(b), &g)), g.out_shape()))
+    }
 }
 
 /// `w` [cout, cin, kh, kw] -> [cin, cout, kh, kw] with both spatial axes reversed.

@@ -20,7 +20,8 @@ use crate::storage::contiguous;
 
 /// A convolution prepared for bf16 products: the weight is rounded and packed for the im2col
 /// GEMM on first use and kept, so pack a layer once and reuse it every frame. Layers that run
-/// Winograd run the f32 convolution on the same (shared, not copied) weight tensor.
+/// Winograd run the f32 convolution on the same (shared, not copied) weight tensor, with its
+/// Winograd transform kept after the first call (4x the weight, only for those layers).
 #[derive(Debug, Clone)]
 pub struct Bf16Conv {
     pub(super) weight: Tensor,
@@ -30,6 +31,8 @@ pub struct Bf16Conv {
     pub(super) spec: Conv2dSpec,
     /// `[cout, K]` pair words (K = cin kh kw) for the im2col GEMM.
     gemm: Arc<OnceLock<Vec<u32>>>,
+    /// The f32 Winograd transform, for layers that run Winograd.
+    pub(super) wino: super::WinogradCache,
 }
 
 impl Bf16Conv {
@@ -59,6 +62,7 @@ impl Bf16Conv {
             dims: [cout, cin, kh, kw],
             spec,
             gemm: Arc::default(),
+            wino: super::WinogradCache::default(),
         })
     }
 
