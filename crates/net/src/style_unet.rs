@@ -368,12 +368,7 @@ impl ModulatedConv {
                     };
                     let scale = scale.broadcast_as((self.cout, cin))?;
                     outs.push(match bf16 {
-                        Some(_) => {
-                            let wi = self
-                                .weight
-                                .broadcast_mul(&scale.reshape((self.cout, cin, 1, 1))?)?;
-                            Bf16Conv::new(&wi, bias, spec)?.forward(&xi)?
-                        }
+                        Some(packed) => packed.forward_scaled(&xi, &scale, bias)?,
                         None => {
                             conv2d_fixed(&xi, &self.weight, Some(&scale), bias, spec, &self.wino)?
                         }

@@ -29,6 +29,11 @@ const F64_FINE_TOL: f64 = 3.0e-8;
 /// Same computation, same kernels, batch 2 vs batch 1: only the convolution's batching can
 /// change the summation order.
 const BATCH_TOL: f32 = 1e-6;
+/// Inference (fixed weights) against the tracked graph: the inference path scales a kept
+/// Winograd transform of the weight (`G (s g) G^T` as `s (G g G^T)`) where the graph transforms
+/// the scaled weight, a different rounding inside Winograd's ~10x error amplification
+/// (measured 1.7e-6 on the fine image).
+const INFERENCE_TOL: f32 = 1e-5;
 /// The two modulation paths in f32 (weight scaled vs input and output scaled): rounding of a
 /// few hundred products per output, relative to outputs of order 1.
 const PATH_TOL_F32: f32 = 2e-5;
@@ -369,7 +374,7 @@ fn in_place_inference_equals_the_tracked_graph() {
     let x = random_input(&[2, 32, 64, 64], 4, DType::F32);
     let a = plain.forward(&x, Noise::Fixed).expect("in place");
     let b = tracked.forward(&x, Noise::Fixed).expect("tracked");
-    assert_close("in-place vs tracked", &a, &b, BATCH_TOL as f64);
+    assert_close("in-place vs tracked", &a, &b, INFERENCE_TOL as f64);
     // The input survives the in-place epilogues.
     assert_close(
         "input untouched",

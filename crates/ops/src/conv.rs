@@ -137,13 +137,18 @@ fn env_algo() -> Option<ConvAlgo> {
 /// image gets the same kernel, hence the same rounding, alone and in a batch.
 const WINOGRAD_MIN_TILES: usize = 128;
 const WINOGRAD_MIN_CHANNELS: usize = 8;
+/// [`WINOGRAD_MIN_TILES`] when the weight's transform is kept ([`conv2d_fixed`]): with no
+/// transform per call Winograd also wins on 32x32 images (64 tiles; the release renderer's
+/// 512-channel 32x32 layers, 24.5 -> ~10 ms each), not yet on 16x16 (16 tiles). Measured on
+/// the release renderer with `bench model`: 128 -> 485 ms, 64 -> 420-429 ms, 16 -> 437 ms.
+const WINOGRAD_MIN_TILES_KEPT: usize = 64;
 
 impl Bf16Conv {
     /// `x` [B, cin, H, W] f32 on the CPU -> [B, cout, OH, OW]: bf16 products where the layer
     /// runs the im2col GEMM, the f32 Winograd op (same weight tensor) where it runs Winograd.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let g = Geom::new(x.dims(), &self.dims, self.spec)?;
-        if use_winograd(&g, ConvAlgo::Auto) && winograd::eligible(&g) {
+        if use_kept_winograd(&g) {
             conv2d_fixed(
                 x,
                 &self.weight,
@@ -156,6 +161,33 @@ impl Bf16Conv {
             self.gemm_forward(x)
         }
     }
+
+    /// `conv2d(x, weight * scale[co, ci], bias)` (a modulated weight, `scale` [cout, cin]): the
+    /// kept Winograd transform scaled per call where the layer runs Winograd, a freshly packed
+    /// scaled weight for the bf16 GEMM elsewhere. The layer's own bias is not used.
+    pub fn forward_scaled(
+        &self,
+        x: &Tensor,
+        scale: &Tensor,
+        bias: Option<&Tensor>,
+    ) -> Result<Tensor> {
+        let g = Geom::new(x.dims(), &self.dims, self.spec)?;
+        if use_kept_winograd(&g) {
+            conv2d_fixed(x, &self.weight, Some(scale), bias, self.spec, &self.wino)
+        } else {
+            let w = self
+                .weight
+                .broadcast_mul(&scale.reshape((g.cout, g.cin, 1, 1))?)?;
+            Bf16Conv::new(&w, bias, self.spec)?.gemm_forward(x)
+        }
+    }
+}
+
+/// The automatic choice of a layer whose Winograd transform is kept.
+fn use_kept_winograd(g: &Geom) -> bool {
+    winograd::eligible(g)
+        && g.oh.div_ceil(4) * g.ow.div_ceil(4) >= WINOGRAD_MIN_TILES_KEPT
+        && g.cin.min(g.cout) >= WINOGRAD_MIN_CHANNELS
 }
 
 fn use_winograd(g: &Geom, algo: ConvAlgo) -> bool {
@@ -264,7 +296,7 @@ pub fn conv2d_fixed(
     let winograd = match env_algo() {
         Some(ConvAlgo::Winograd) => winograd::eligible(&g),
         Some(_) => false,
-        None => use_winograd(&g, ConvAlgo::Auto),
+        None => use_kept_winograd(&g),
     };
     let cpu_f32 = x.device().is_cpu() && x.dtype() == DType::F32 && w.dtype() == DType::F32;
     if tracked || !winograd || !cpu_f32 {

@@ -9,7 +9,7 @@ use common::*;
 use gagavatar_ops::conv::{conv2d_fixed, WinogradCache};
 use gagavatar_ops::{conv2d, Conv2dSpec};
 
-/// Shapes: two that run Winograd (>= 128 output tiles, >= 8 channels; the second with a filter
+/// Shapes: two that run Winograd (>= 64 output tiles, >= 8 channels; the second with a filter
 /// count, 11 x 13 = 143, that is not a multiple of the transform's block) and one that runs
 /// the GEMM (too few tiles), where the scaled weight is formed instead.
 const SHAPES: [Case; 3] = [
