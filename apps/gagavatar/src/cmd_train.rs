@@ -221,6 +221,41 @@ fn collective() -> Result<Arc<dyn Collective>> {
     }
 }
 
+/// What the lead rank says when the job is torn down, set once before training.
+static TEARDOWN_LINE: OnceLock<Vec<u8>> = OnceLock::new();
+
+/// When one rank of an MPI job dies, the launcher ends the others with SIGTERM while they
+/// wait for it inside a collective, and they would vanish without a word. Instead the lead
+/// rank says so in one line (the last checkpoint is whole: it is written under a temporary
+/// name and renamed) and every rank exits at once: nothing it could still do would be saved.
+/// The handler only writes prepared bytes and calls `_exit`, both async-signal-safe.
+#[cfg(unix)]
+fn on_job_teardown(lead: bool, dir: &std::path::Path) {
+    let line = if lead {
+        format!(
+            "\nerror: another rank of this MPI job ended, so training stopped; the last \
+             checkpoint in {0} is intact (resume with `gagavatar train --resume {0}`)\n",
+            dir.display()
+        )
+    } else {
+        String::new()
+    };
+    let _ = TEARDOWN_LINE.set(line.into_bytes());
+    extern "C" fn handler(_: libc::c_int) {
+        if let Some(line) = TEARDOWN_LINE.get() {
+            // SAFETY: write(2) on stderr from a live buffer; nothing is allocated or locked.
+            unsafe { libc::write(2, line.as_ptr().cast(), line.len()) };
+        }
+        // SAFETY: ends the process without running destructors or atexit handlers.
+        unsafe { libc::_exit(1) }
+    }
+    // SAFETY: installs a handler that touches only async-signal-safe calls (see above).
+    unsafe { libc::signal(libc::SIGTERM, handler as *const () as libc::sighandler_t) };
+}
+
+#[cfg(not(unix))]
+fn on_job_teardown(_lead: bool, _dir: &std::path::Path) {}
+
 pub fn run_train(a: TrainArgs) -> Result<()> {
     set_threads(a.threads);
     let dev = Device::Cpu;
@@ -266,6 +301,9 @@ pub fn run_train(a: TrainArgs) -> Result<()> {
         cfg.validate().map_err(anyhow::Error::msg)?;
         Run::create_with(cfg, out, a.force, &dev, &monitor, ranks.clone())?
     };
+    if ranks.size() > 1 {
+        on_job_teardown(lead, run.dir());
+    }
     if !lead {
         run.train(&monitor)?;
         return Ok(());

@@ -230,3 +230,127 @@ fn two_ranks_follow_one_process_and_resume_with_another_count() {
     assert!(err.contains("does not split into 2 equal shares"), "{err}");
     assert!(!bad.join("checkpoint.safetensors").exists());
 }
+
+/// The process of rank `rank` that the launcher `launcher` started (`/proc`: its parent and
+/// OpenMPI's rank variable).
+fn rank_pid(launcher: u32, rank: usize) -> Option<u32> {
+    let want = format!("OMPI_COMM_WORLD_RANK={rank}");
+    for entry in std::fs::read_dir("/proc").ok()?.flatten() {
+        let Ok(pid) = entry.file_name().to_string_lossy().parse::<u32>() else {
+            continue;
+        };
+        let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+            continue;
+        };
+        // The parent is the second field after the parenthesised command name.
+        let parent = stat
+            .rsplit_once(')')
+            .and_then(|(_, rest)| rest.split_whitespace().nth(1))
+            .and_then(|p| p.parse::<u32>().ok());
+        if parent != Some(launcher) {
+            continue;
+        }
+        let Ok(env) = std::fs::read(format!("/proc/{pid}/environ")) else {
+            continue;
+        };
+        if env.split(|&b| b == 0).any(|v| v == want.as_bytes()) {
+            return Some(pid);
+        }
+    }
+    None
+}
+
+fn wait_until(what: &str, seconds: u64, mut ready: impl FnMut() -> bool) {
+    let end = std::time::Instant::now() + std::time::Duration::from_secs(seconds);
+    while !ready() {
+        assert!(
+            std::time::Instant::now() < end,
+            "{what}: not within {seconds} s"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+}
+
+/// `kill -9` of one rank mid-run: the job ends, failing, with our one line (and, under
+/// `mpirun -q`, nothing of the launcher's), the last checkpoint is whole, and the run resumes
+/// from it on one process.
+#[test]
+fn a_killed_rank_ends_the_job_in_one_line_and_the_run_resumes() {
+    if mpirun().is_none() {
+        return;
+    }
+    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train_mpi_kill");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let s = |p: &Path| p.display().to_string();
+    let data = dir.join("data");
+    check(
+        Command::new(BIN)
+            .args(["synth-data", "-o", &s(&data), "--identities", "3"])
+            .args(["--frames", "3", "--size", "64", "--holdout", "1"])
+            .output()
+            .unwrap(),
+        "synth-data",
+    );
+    // The tiny preset, checkpointing every 5 steps, long enough to be killed mid-run.
+    let preset = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../crates/train/configs/tiny.toml"
+    ))
+    .unwrap();
+    let config = dir.join("config.toml");
+    let edited = preset
+        .replace("checkpoint_every = 500", "checkpoint_every = 5")
+        .replace("steps = 2000", "steps = 5000");
+    assert_ne!(edited, preset, "the tiny preset's keys moved");
+    std::fs::write(&config, edited).unwrap();
+    let run = dir.join("run");
+    let log = dir.join("stderr.txt");
+    let mut job = Command::new("mpirun")
+        .args(["-q", "--oversubscribe", "-n", "2", BIN, "train"])
+        .args(["--config", &s(&config), "--data", &s(&data), "--batch", "2"])
+        .args(["--val-every", "0", "--out", &s(&run), "--threads", "1"])
+        .env("OMPI_ALLOW_RUN_AS_ROOT", "1")
+        .env("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let logged = || {
+        std::fs::read_to_string(run.join("metrics.jsonl"))
+            .map(|m| m.lines().count())
+            .unwrap_or(0)
+    };
+    wait_until("12 logged steps", 300, || logged() >= 12);
+    let victim = rank_pid(job.id(), 1).expect("rank 1's process");
+    let killed = Command::new("kill")
+        .args(["-9", &victim.to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let mut status = None;
+    wait_until("the job's end after kill -9", 60, || {
+        status = job.try_wait().unwrap();
+        status.is_some()
+    });
+    assert!(!status.unwrap().success(), "the job succeeded");
+    let err = std::fs::read_to_string(&log).unwrap();
+    let ours: Vec<&str> = err
+        .lines()
+        .filter(|l| l.contains("another rank of this MPI job ended"))
+        .collect();
+    assert_eq!(ours.len(), 1, "{err}");
+    assert!(ours[0].contains("gagavatar train --resume"), "{err}");
+    assert!(
+        !err.contains("----"),
+        "the launcher's banner under -q:\n{err}"
+    );
+
+    // The checkpoint left behind resumes; the run then reaches its new total.
+    let last = metrics(&run).last().unwrap()["step"].as_u64().unwrap();
+    let total = (last + 3).to_string();
+    let out = train(1, &["--resume", &s(&run), "--steps", &total]);
+    assert!(out.contains("trained steps"), "{out}");
+    let end = metrics(&run).last().unwrap()["step"].as_u64().unwrap();
+    assert_eq!(end, last + 3);
+}
