@@ -106,17 +106,20 @@ impl LinearGsGenerator {
         if head_base.track_op() || wa.track_op() {
             return head_base.matmul(&wa.t()?);
         }
-        let mut cache = self
-            .vertex_term
-            .lock()
-            .unwrap_or_else(|poisoned| poisoned.into_inner());
-        if let Some((id, t)) = cache.as_ref() {
+        let lock = || {
+            self.vertex_term
+                .lock()
+                .unwrap_or_else(|poisoned| poisoned.into_inner())
+        };
+        if let Some((id, t)) = lock().as_ref() {
             if *id == head_base.id() {
                 return Ok(t.clone());
             }
         }
+        // Computed without the lock: the product runs parallel tasks, and a worker waiting on
+        // them must not be able to reach this lock again from another call.
         let t = head_base.matmul(&wa.t()?)?;
-        *cache = Some((head_base.id(), t.clone()));
+        *lock() = Some((head_base.id(), t.clone()));
         Ok(t)
     }
 

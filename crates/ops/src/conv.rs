@@ -235,19 +235,28 @@ struct CachedTransform {
 
 impl WinogradCache {
     fn transform(&self, id: TensorId, w: &[f32], g: &Geom) -> Arc<Vec<f32>> {
-        // A poisoned lock only means another thread panicked mid-transform: start afresh.
-        let mut slot = self.0.lock().unwrap_or_else(|e| e.into_inner());
-        match &*slot {
-            Some(c) if c.weight == id && c.u.len() == 36 * g.cout * g.cin => c.u.clone(),
-            _ => {
-                let u = Arc::new(winograd::transform_weights(w, g.cout, g.cin));
-                *slot = Some(CachedTransform {
-                    weight: id,
-                    u: u.clone(),
-                });
-                u
+        // A poisoned lock only means another thread panicked while holding it: go on.
+        let held = {
+            let slot = self.0.lock().unwrap_or_else(|e| e.into_inner());
+            match &*slot {
+                Some(c) if c.weight == id && c.u.len() == 36 * g.cout * g.cin => Some(c.u.clone()),
+                _ => None,
             }
+        };
+        if let Some(u) = held {
+            return u;
         }
+        // Transformed without the lock: the transform runs rayon tasks, and a worker waiting on
+        // them may pick up another call of this same layer (e.g. LPIPS inside a parallel
+        // evaluation), which would then wait on a lock its own thread holds. Two first calls
+        // at once both transform; either result is the same.
+        let u = Arc::new(winograd::transform_weights(w, g.cout, g.cin));
+        let mut slot = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        *slot = Some(CachedTransform {
+            weight: id,
+            u: u.clone(),
+        });
+        u
     }
 
     /// Whether a transform is held (tests).

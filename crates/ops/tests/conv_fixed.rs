@@ -162,3 +162,34 @@ fn a_scale_of_the_wrong_shape_is_an_error() {
         .to_string();
     assert!(err.contains("filter scale must be [24, 16]"), "{err}");
 }
+
+/// Many first calls of one layer at once, from rayon tasks (as LPIPS runs inside a parallel
+/// evaluation): they finish, agree bit for bit, and leave one transform.
+#[test]
+fn concurrent_first_calls_finish_and_agree() {
+    use rayon::prelude::*;
+    let c = case(1, 64, 48, 48, 64, 3, 3, 1, 1);
+    let x = f32(&tensor(&[c.b, c.cin, c.h, c.w], 12));
+    let w = f32(&tensor(&[c.cout, c.cin, 3, 3], 13));
+    let cache = WinogradCache::default();
+    // More workers than this machine's cores, so that first calls overlap.
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(6)
+        .build()
+        .unwrap();
+    let outs: Vec<Vec<f64>> = pool.install(|| {
+        (0..24)
+            .into_par_iter()
+            .map(|_| flat(&conv2d_fixed(&x, &w, None, None, spec(&c), &cache).unwrap()))
+            .collect()
+    });
+    for (k, o) in outs.iter().enumerate().skip(1) {
+        for (i, (a, e)) in o.iter().zip(&outs[0]).enumerate() {
+            assert!(
+                a.to_bits() == e.to_bits(),
+                "call {k} index {i}: first call {e}, this call {a}"
+            );
+        }
+    }
+    assert!(cache.is_filled());
+}
