@@ -32,7 +32,7 @@ pub struct Bf16Conv {
     /// `[cout, K]` pair words (K = cin kh kw) for the im2col GEMM.
     gemm: Arc<OnceLock<Vec<u32>>>,
     /// The f32 Winograd transform, for layers that run Winograd.
-    pub(super) wino: super::WinogradCache,
+    pub(super) wino: super::winograd::WinogradCache,
 }
 
 impl Bf16Conv {
@@ -62,7 +62,7 @@ impl Bf16Conv {
             dims: [cout, cin, kh, kw],
             spec,
             gemm: Arc::default(),
-            wino: super::WinogradCache::default(),
+            wino: super::winograd::WinogradCache::default(),
         })
     }
 

@@ -12,7 +12,9 @@
 
 use super::elem::{alloc_output, balanced_chunk, gemm, multiversion, Elem, Mat, SendPtr};
 use super::geom::Geom;
+use candle_core::TensorId;
 use rayon::prelude::*;
+use std::sync::{Arc, Mutex};
 
 /// Tiles transformed side by side in local arrays, so the transforms vectorise across tiles.
 const LANES: usize = 16;
@@ -113,6 +115,52 @@ pub(crate) fn transform_weights<T: Elem>(w: &[T], cout: usize, cin: usize) -> Ve
             }
         });
     u
+}
+
+/// The Winograd transform of one fixed 3x3 weight, made by the layer's first Winograd call
+/// and reused by every later one: transforming a 256x256 filter bank costs about a tenth of
+/// running the layer at 74x74. It holds the transform of the last weight it was given (a layer
+/// whose weight tensor is replaced transforms the new one), and only ever grows by the
+/// layers that run Winograd (4x their weight's size).
+#[derive(Debug, Clone, Default)]
+pub struct WinogradCache(Arc<Mutex<Option<CachedTransform>>>);
+
+#[derive(Debug)]
+struct CachedTransform {
+    weight: TensorId,
+    u: Arc<Vec<f32>>,
+}
+
+impl WinogradCache {
+    pub(super) fn transform(&self, id: TensorId, w: &[f32], g: &Geom) -> Arc<Vec<f32>> {
+        // A poisoned lock only means another thread panicked while holding it: go on.
+        let held = {
+            let slot = self.0.lock().unwrap_or_else(|e| e.into_inner());
+            match &*slot {
+                Some(c) if c.weight == id && c.u.len() == 36 * g.cout * g.cin => Some(c.u.clone()),
+                _ => None,
+            }
+        };
+        if let Some(u) = held {
+            return u;
+        }
+        // Transformed without the lock: the transform runs rayon tasks, and a worker waiting on
+        // them may pick up another call of this same layer (e.g. LPIPS inside a parallel
+        // evaluation), which would then wait on a lock its own thread holds. Two first calls
+        // at once both transform; either result is the same.
+        let u = Arc::new(transform_weights(w, g.cout, g.cin));
+        let mut slot = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        *slot = Some(CachedTransform {
+            weight: id,
+            u: u.clone(),
+        });
+        u
+    }
+
+    /// Whether a transform is held (tests).
+    pub fn is_filled(&self) -> bool {
+        self.0.lock().map(|s| s.is_some()).unwrap_or(false)
+    }
 }
 
 /// Length of a zero-padded input row: every 16-tile block reads `4*LANES + 2` samples.
