@@ -224,17 +224,20 @@ fn collective() -> Result<Arc<dyn Collective>> {
 /// What the lead rank says when the job is torn down, set once before training.
 static TEARDOWN_LINE: OnceLock<Vec<u8>> = OnceLock::new();
 
-/// When one rank of an MPI job dies, the launcher ends the others with SIGTERM while they
-/// wait for it inside a collective, and they would vanish without a word. Instead the lead
-/// rank says so in one line (the last checkpoint is whole: it is written under a temporary
-/// name and renamed) and every rank exits at once: nothing it could still do would be saved.
+/// When one rank of an MPI job dies, or `mpirun` itself is interrupted (Ctrl-C reaches only
+/// the launcher: OpenMPI starts each rank in its own process group), the launcher ends the
+/// ranks with SIGTERM, and they would vanish without a word, some while waiting inside a
+/// collective for a dead peer. Instead the lead rank says so in one line (the last checkpoint
+/// is whole: it is written under a temporary name and renamed) and every rank exits at once:
+/// the launcher kills what is left a moment later, so nothing more could be saved.
 /// The handler only writes prepared bytes and calls `_exit`, both async-signal-safe.
 #[cfg(unix)]
 fn on_job_teardown(lead: bool, dir: &std::path::Path) {
     let line = if lead {
         format!(
-            "\nerror: another rank of this MPI job ended, so training stopped; the last \
-             checkpoint in {0} is intact (resume with `gagavatar train --resume {0}`)\n",
+            "\nerror: mpirun ended this job (a rank died, or mpirun was interrupted), so \
+             training stopped; the last checkpoint in {0} is intact (resume with `gagavatar \
+             train --resume {0}`)\n",
             dir.display()
         )
     } else {

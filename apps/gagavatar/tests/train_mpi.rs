@@ -337,7 +337,7 @@ fn a_killed_rank_ends_the_job_in_one_line_and_the_run_resumes() {
     let err = std::fs::read_to_string(&log).unwrap();
     let ours: Vec<&str> = err
         .lines()
-        .filter(|l| l.contains("another rank of this MPI job ended"))
+        .filter(|l| l.contains("mpirun ended this job (a rank died"))
         .collect();
     assert_eq!(ours.len(), 1, "{err}");
     assert!(ours[0].contains("gagavatar train --resume"), "{err}");
