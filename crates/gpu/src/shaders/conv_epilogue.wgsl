@@ -1,5 +1,35 @@
-// The fused epilogue of one convolution output, in the CPU path's order. It is appended to
-// conv.wgsl, conv_mma.wgsl and conv_finish.wgsl and reads their flags, parameters and buffers.
+// The fused epilogue of one convolution output, in the CPU path's order, with the parameters
+// and epilogue flags it reads. It is appended to conv.wgsl, conv_mma.wgsl and conv_finish.wgsl,
+// which declare the buffers it reads (`vecs`, `aux`, `sft`) and share this uniform layout
+// (`slices` is read by the split-K finish only).
+
+struct P {
+    cin: u32,
+    cout: u32,
+    h: u32,
+    w: u32,
+    in_off: u32,
+    out_off: u32,
+    bias_off: u32,
+    insc_off: u32,
+    outsc_off: u32,
+    aux_off: u32,
+    sft_scale_off: u32,
+    sft_shift_off: u32,
+    noise_w: f32,
+    slices: u32,
+    _p1: u32,
+    _p2: u32,
+}
+
+const OUT_SCALE: bool = {{OUT_SCALE}};
+const BIAS: bool = {{BIAS}};
+const NOISE: bool = {{NOISE}};
+const LRELU: bool = {{LRELU}};
+const RESID: bool = {{RESID}};
+const SFT: bool = {{SFT}};
+const SIGMOID: bool = {{SIGMOID}};
+
 fn epilogue(acc: f32, co: u32, pix: u32, hw: u32) -> f32 {
     var v = acc;
     if (OUT_SCALE) {

@@ -1,37 +1,12 @@
-// What conv.wgsl and conv_mma.wgsl share (appended to both, with conv_epilogue.wgsl): the
-// parameters, options and buffers of one convolution, the im2col read and the output write.
-
-struct P {
-    cin: u32,
-    cout: u32,
-    h: u32,
-    w: u32,
-    in_off: u32,
-    out_off: u32,
-    bias_off: u32,
-    insc_off: u32,
-    outsc_off: u32,
-    aux_off: u32,
-    sft_scale_off: u32,
-    sft_shift_off: u32,
-    noise_w: f32,
-    _p0: u32,
-    _p1: u32,
-    _p2: u32,
-}
+// What conv.wgsl and conv_mma.wgsl share (appended to both, with conv_epilogue.wgsl, which holds
+// the parameters and epilogue flags): the input options and buffers of one convolution, the
+// im2col read and the output write.
 
 const KS: u32 = {{KSIZE}}u;
 const TAPS: u32 = KS * KS;
 const PAD: i32 = i32(KS / 2u);
 const SPLIT: u32 = {{SPLIT}}u;
 const IN_SCALE: bool = {{IN_SCALE}};
-const OUT_SCALE: bool = {{OUT_SCALE}};
-const BIAS: bool = {{BIAS}};
-const NOISE: bool = {{NOISE}};
-const LRELU: bool = {{LRELU}};
-const RESID: bool = {{RESID}};
-const SFT: bool = {{SFT}};
-const SIGMOID: bool = {{SIGMOID}};
 
 @group(0) @binding(0) var<uniform> p: P;
 @group(0) @binding(1) var<storage, read> x: array<f32>;
