@@ -301,38 +301,19 @@ impl FoldedHeads {
             first_biases.push(bias);
             encodings.push(wh.narrow(1, hidden, wh.dim(1)? - hidden)?);
         }
-        let total: usize = heads.iter().map(|h| h.l2.inner().weight().dims()[0]).sum();
-        let mut at = 0;
         for (k, h) in heads.iter().enumerate() {
             let l2 = h.l2.inner();
             let w2 = f64(l2.weight())?;
             let out = w2.dim(0)?;
             outs[k] = out;
-            // Row block k of the block-diagonal [total, heads * head_hidden].
-            let mut parts = Vec::new();
-            if k > 0 {
-                parts.push(Tensor::zeros(
-                    (out, k * head_hidden),
-                    DType::F64,
-                    w2.device(),
-                )?);
-            }
-            parts.push(w2);
-            if k + 1 < heads.len() {
-                parts.push(Tensor::zeros(
-                    (out, (heads.len() - 1 - k) * head_hidden),
-                    DType::F64,
-                    w6.device(),
-                )?);
-            }
-            seconds.push(Tensor::cat(&parts, 1)?);
+            // Row block k of the block-diagonal [sum of outs, heads * head_hidden].
+            let after = (heads.len() - 1 - k) * head_hidden;
+            seconds.push(w2.pad_with_zeros(1, k * head_hidden, after)?);
             second_biases.push(match l2.bias() {
                 Some(b) => f64(b)?,
                 None => Tensor::zeros(out, DType::F64, w6.device())?,
             });
-            at += out;
         }
-        debug_assert_eq!(at, total);
         // Back to the model's own dtype.
         let dtype = last.weight().dtype();
         let own = |t: Tensor| t.to_dtype(dtype);
