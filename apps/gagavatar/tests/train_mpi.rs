@@ -43,21 +43,51 @@ fn check(o: Output, what: &str) -> String {
     err
 }
 
-fn train(ranks: usize, args: &[&str]) -> String {
-    let mut c = if ranks == 1 {
-        Command::new(BIN)
-    } else {
-        let mut c = Command::new("mpirun");
-        c.args(["--oversubscribe", "-n", &ranks.to_string(), BIN]);
-        c
-    };
-    // OpenMPI refuses root (CI containers) unless told.
-    c.env("OMPI_ALLOW_RUN_AS_ROOT", "1")
+/// `mpirun [-q] -n RANKS gagavatar train`, allowed to run as root and to oversubscribe.
+fn mpirun_train(ranks: usize, quiet: bool) -> Command {
+    let mut c = Command::new("mpirun");
+    if quiet {
+        c.arg("-q");
+    }
+    c.args(["--oversubscribe", "-n", &ranks.to_string(), BIN, "train"])
+        // OpenMPI refuses root (CI containers) unless told.
+        .env("OMPI_ALLOW_RUN_AS_ROOT", "1")
         .env("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
         .env("OMPI_MCA_rmaps_base_oversubscribe", "1");
-    c.arg("train");
+    c
+}
+
+fn train(ranks: usize, args: &[&str]) -> String {
+    let mut c = if ranks == 1 {
+        let mut c = Command::new(BIN);
+        c.arg("train");
+        c
+    } else {
+        mpirun_train(ranks, false)
+    };
     let o = c.args(args).args(["--threads", "1"]).output().unwrap();
     check(o, &format!("{ranks} rank(s): train {args:?}"))
+}
+
+/// A fresh folder `name` under the test's scratch space with a small synthetic dataset in
+/// `data/` (3 identities of 3 frames at 64x64, one held out); returns both paths.
+fn fresh_dataset(name: &str) -> (PathBuf, PathBuf) {
+    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(name);
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let data = dir.join("data");
+    check(
+        Command::new(BIN)
+            .arg("synth-data")
+            .arg("-o")
+            .arg(&data)
+            .args(["--identities", "3", "--frames", "3"])
+            .args(["--size", "64", "--holdout", "1"])
+            .output()
+            .unwrap(),
+        "synth-data",
+    );
+    (dir, data)
 }
 
 fn metrics(run: &Path) -> Vec<serde_json::Value> {
@@ -129,27 +159,8 @@ fn two_ranks_follow_one_process_and_resume_with_another_count() {
     if mpirun().is_none() {
         return;
     }
-    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train_mpi");
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let (dir, data) = fresh_dataset("train_mpi");
     let s = |p: &Path| p.display().to_string();
-    let data = dir.join("data");
-    check(
-        Command::new(BIN)
-            .args([
-                "synth-data",
-                "-o",
-                &s(&data),
-                "--identities",
-                "3",
-                "--frames",
-                "3",
-            ])
-            .args(["--size", "64", "--holdout", "1"])
-            .output()
-            .unwrap(),
-        "synth-data",
-    );
     let steps = STEPS.to_string();
     let common = |out: &Path, steps: &str| -> Vec<String> {
         [
@@ -218,13 +229,7 @@ fn two_ranks_follow_one_process_and_resume_with_another_count() {
     v[i + 1] = "3".into();
     let joined = strs(&v);
     let args: Vec<&str> = joined.split('\u{0}').collect();
-    let o = Command::new("mpirun")
-        .args(["--oversubscribe", "-n", "2", BIN, "train"])
-        .args(&args)
-        .env("OMPI_ALLOW_RUN_AS_ROOT", "1")
-        .env("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
-        .output()
-        .unwrap();
+    let o = mpirun_train(2, false).args(&args).output().unwrap();
     assert!(!o.status.success(), "batch 3 over 2 ranks succeeded");
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("does not split into 2 equal shares"), "{err}");
@@ -279,19 +284,8 @@ fn a_killed_rank_ends_the_job_in_one_line_and_the_run_resumes() {
     if mpirun().is_none() {
         return;
     }
-    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("train_mpi_kill");
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let (dir, data) = fresh_dataset("train_mpi_kill");
     let s = |p: &Path| p.display().to_string();
-    let data = dir.join("data");
-    check(
-        Command::new(BIN)
-            .args(["synth-data", "-o", &s(&data), "--identities", "3"])
-            .args(["--frames", "3", "--size", "64", "--holdout", "1"])
-            .output()
-            .unwrap(),
-        "synth-data",
-    );
     // The tiny preset, checkpointing every 5 steps, long enough to be killed mid-run.
     let preset = std::fs::read_to_string(concat!(
         env!("CARGO_MANIFEST_DIR"),
@@ -306,12 +300,9 @@ fn a_killed_rank_ends_the_job_in_one_line_and_the_run_resumes() {
     std::fs::write(&config, edited).unwrap();
     let run = dir.join("run");
     let log = dir.join("stderr.txt");
-    let mut job = Command::new("mpirun")
-        .args(["-q", "--oversubscribe", "-n", "2", BIN, "train"])
+    let mut job = mpirun_train(2, true)
         .args(["--config", &s(&config), "--data", &s(&data), "--batch", "2"])
         .args(["--val-every", "0", "--out", &s(&run), "--threads", "1"])
-        .env("OMPI_ALLOW_RUN_AS_ROOT", "1")
-        .env("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
         .stdout(std::process::Stdio::null())
         .stderr(std::fs::File::create(&log).unwrap())
         .spawn()
