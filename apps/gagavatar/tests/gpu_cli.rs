@@ -18,6 +18,19 @@ use common::{strs, Fixture, BIN};
 const RGB8_TOL: i32 = 1;
 /// An adapter name no device has, to simulate a machine without one.
 const NO_SUCH_ADAPTER: &str = "no-such-adapter-4c0e511";
+/// One tiny-preset frame of `bench drive --device auto`: the GPU when one is found, else the CPU.
+const AUTO_DRIVE: [&str; 10] = [
+    "bench",
+    "drive",
+    "--device",
+    "auto",
+    "--preset",
+    "tiny",
+    "--frames",
+    "1",
+    "--threads",
+    "1",
+];
 
 /// Mesa's window-system code prints a line on stderr when XDG_RUNTIME_DIR is unset (nothing
 /// here opens a window); a private one keeps stderr to the program's own lines.
@@ -259,21 +272,7 @@ fn no_adapter_is_one_line_for_gpu_and_a_fallback_for_auto() {
     assert!(lines[0].contains("no GPU adapter found"), "{err}");
     assert!(lines[0].contains(NO_SUCH_ADAPTER), "{err}");
 
-    let out = run(
-        &[
-            "bench",
-            "drive",
-            "--device",
-            "auto",
-            "--preset",
-            "tiny",
-            "--frames",
-            "1",
-            "--threads",
-            "1",
-        ],
-        &env,
-    );
+    let out = run(&AUTO_DRIVE, &env);
     assert!(
         out.status.success(),
         "--device auto without an adapter failed:\n{}",
@@ -396,18 +395,7 @@ fn bench_json_and_gpu_precision() {
 #[test]
 fn probing_is_quiet_without_a_runtime_dir() {
     let out = Command::new(BIN)
-        .args([
-            "bench",
-            "drive",
-            "--device",
-            "auto",
-            "--preset",
-            "tiny",
-            "--frames",
-            "1",
-            "--threads",
-            "1",
-        ])
+        .args(AUTO_DRIVE)
         .env_remove("XDG_RUNTIME_DIR")
         .output()
         .unwrap();
