@@ -10,7 +10,7 @@ mod geom;
 pub use geom::Conv2dSpec;
 use geom::Geom;
 
-use crate::storage::contiguous;
+use crate::storage::{contiguous, contiguous_f32};
 mod im2col;
 #[cfg(target_arch = "x86_64")]
 mod wino_x86;
@@ -185,21 +185,23 @@ impl Bf16Conv {
 
 /// The automatic choice of a layer whose Winograd transform is kept.
 fn use_kept_winograd(g: &Geom) -> bool {
-    winograd::eligible(g)
-        && g.oh.div_ceil(4) * g.ow.div_ceil(4) >= WINOGRAD_MIN_TILES_KEPT
-        && g.cin.min(g.cout) >= WINOGRAD_MIN_CHANNELS
+    winograd_pays_off(g, WINOGRAD_MIN_TILES_KEPT)
 }
 
 fn use_winograd(g: &Geom, algo: ConvAlgo) -> bool {
     match algo {
         ConvAlgo::Winograd => true,
         ConvAlgo::Gemm | ConvAlgo::Candle => false,
-        ConvAlgo::Auto => {
-            winograd::eligible(g)
-                && g.oh.div_ceil(4) * g.ow.div_ceil(4) >= WINOGRAD_MIN_TILES
-                && g.cin.min(g.cout) >= WINOGRAD_MIN_CHANNELS
-        }
+        ConvAlgo::Auto => winograd_pays_off(g, WINOGRAD_MIN_TILES),
     }
+}
+
+/// The automatic choice: a 3x3 stride-1 layer with `min_tiles` 4x4 output tiles per image and
+/// enough channels.
+fn winograd_pays_off(g: &Geom, min_tiles: usize) -> bool {
+    winograd::eligible(g)
+        && g.oh.div_ceil(4) * g.ow.div_ceil(4) >= min_tiles
+        && g.cin.min(g.cout) >= WINOGRAD_MIN_CHANNELS
 }
 
 fn forward_impl<T: elem::Elem>(
@@ -310,25 +312,6 @@ impl FixedConvOp {
         }
         y
     }
-
-    fn storages<'a>(
-        s1: &'a CpuStorage,
-        l1: &Layout,
-        s2: &'a CpuStorage,
-        l2: &Layout,
-    ) -> Result<(&'a [f32], &'a [f32])> {
-        match (s1, s2) {
-            (CpuStorage::F32(x), CpuStorage::F32(w)) => Ok((
-                contiguous(x, l1, "conv2d", "input")?,
-                contiguous(w, l2, "conv2d", "weight")?,
-            )),
-            (x, w) => bail!(
-                "conv2d: the cached path needs f32 operands, got {:?} and {:?}",
-                x.dtype(),
-                w.dtype()
-            ),
-        }
-    }
 }
 
 impl CustomOp2 for FixedConvOp {
@@ -344,7 +327,8 @@ impl CustomOp2 for FixedConvOp {
         l2: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let g = Geom::new(l1.dims(), l2.dims(), self.spec)?;
-        let (x, w) = Self::storages(s1, l1, s2, l2)?;
+        let x = contiguous_f32(s1, l1, "conv2d", "input")?;
+        let w = contiguous_f32(s2, l2, "conv2d", "weight")?;
         Ok((CpuStorage::F32(self.run(x, w, None, &g)), g.out_shape()))
     }
 }
@@ -364,16 +348,12 @@ impl CustomOp3 for FixedConvOp {
         l3: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let g = Geom::new(l1.dims(), l2.dims(), self.spec)?;
-        let (x, w) = Self::storages(s1, l1, s2, l2)?;
-        let b = match s3 {
-            CpuStorage::F32(b) if l3.dims() == [g.cout] => contiguous(b, l3, "conv2d", "bias")?,
-            b => bail!(
-                "conv2d: bias must be f32 [{}], got {:?} {:?}",
-                g.cout,
-                b.dtype(),
-                l3.dims()
-            ),
-        };
+        let x = contiguous_f32(s1, l1, "conv2d", "input")?;
+        let w = contiguous_f32(s2, l2, "conv2d", "weight")?;
+        let b = contiguous_f32(s3, l3, "conv2d", "bias")?;
+        if b.len() != g.cout {
+            bail!("conv2d: bias must be [{}], got {:?}", g.cout, l3.dims());
+        }
         Ok((CpuStorage::F32(self.run(x, w, Some(b), &g)), g.out_shape()))
     }
 }
