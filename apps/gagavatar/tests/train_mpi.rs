@@ -4,10 +4,11 @@
 //! missing, unless GAGAVATAR_REQUIRE_MPI is set (CI sets it).
 #![cfg(feature = "mpi")]
 
+mod common;
+
+use common::{strs, BIN};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
-
-const BIN: &str = env!("CARGO_BIN_EXE_gagavatar");
 
 /// The first steps' losses and gradient norms: the same sums in another order (each rank's
 /// gradient of its own pair, then MPI's sum), so f32 rounding apart.
@@ -182,17 +183,7 @@ fn two_ranks_follow_one_process_and_resume_with_another_count() {
         .map(String::from)
         .to_vec()
     };
-    let strs = |v: &[String]| {
-        v.iter()
-            .map(String::as_str)
-            .collect::<Vec<_>>()
-            .join("\u{0}")
-    };
-    let run = |ranks: usize, v: Vec<String>| {
-        let joined = strs(&v);
-        let args: Vec<&str> = joined.split('\u{0}').collect();
-        train(ranks, &args)
-    };
+    let run = |ranks: usize, v: Vec<String>| train(ranks, &strs(&v));
 
     let one = dir.join("one");
     run(1, common(&one, &steps));
@@ -227,9 +218,7 @@ fn two_ranks_follow_one_process_and_resume_with_another_count() {
     let mut v = common(&bad, "2");
     let i = v.iter().position(|a| a == "--batch").unwrap();
     v[i + 1] = "3".into();
-    let joined = strs(&v);
-    let args: Vec<&str> = joined.split('\u{0}').collect();
-    let o = mpirun_train(2, false).args(&args).output().unwrap();
+    let o = mpirun_train(2, false).args(strs(&v)).output().unwrap();
     assert!(!o.status.success(), "batch 3 over 2 ranks succeeded");
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("does not split into 2 equal shares"), "{err}");
