@@ -33,6 +33,11 @@ impl ResidualConvUnit {
         self.conv2.set_precision(precision)
     }
 
+    fn named(&self, prefix: &str, out: &mut Vec<(String, Tensor)>) {
+        self.conv1.named(&format!("{prefix}.conv1"), out);
+        self.conv2.named(&format!("{prefix}.conv2"), out);
+    }
+
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let y = self.conv1.forward(&x.relu()?)?;
         let y = self.conv2.forward(&y.relu()?)?;
@@ -66,6 +71,14 @@ impl FusionBlock {
 
     /// `out = a (+ rcu1(skip))`, `rcu2`, align-corners resize to `size` (x2 when `None`),
     /// `out_conv`.
+    fn named(&self, prefix: &str, out: &mut Vec<(String, Tensor)>) {
+        self.out_conv.named(&format!("{prefix}.out_conv"), out);
+        self.res_conf_unit1
+            .named(&format!("{prefix}.resConfUnit1"), out);
+        self.res_conf_unit2
+            .named(&format!("{prefix}.resConfUnit2"), out);
+    }
+
     fn forward(&self, a: &Tensor, skip: Option<&Tensor>, size: Option<usize>) -> Result<Tensor> {
         let mut out = a.clone();
         if let Some(s) = skip {
@@ -221,6 +234,38 @@ impl DptHead {
 
     /// `feats`: the four [`crate::dino::Dinov2`] outputs [B, grid^2, vit_dim]; `image`: the
     /// normalised DINO input [B, 3, dino, dino]. Returns `F_local` [B, dpt_features, S, S].
+    /// Every weight under its checkpoint key relative to `base_model.` (`projects.0.weight`,
+    /// ...), in the checkpoint's shapes.
+    pub fn named_weights(&self) -> Result<Vec<(String, Tensor)>> {
+        let mut out = Vec::new();
+        for (k, level) in self.levels.iter().enumerate() {
+            let (ck, c) = level.project_weight.dims2()?;
+            out.push((
+                format!("projects.{k}.weight"),
+                level.project_weight.reshape((ck, c, 1, 1))?,
+            ));
+            out.push((format!("projects.{k}.bias"), level.project_bias.clone()));
+            match &level.resize {
+                Resize::Up(t) => {
+                    let cin = t.weight.dim(0)?;
+                    out.push((
+                        format!("resize_layers.{k}.weight"),
+                        t.weight.reshape((cin, t.cout, t.k, t.k))?,
+                    ));
+                    out.push((format!("resize_layers.{k}.bias"), t.bias.reshape(t.cout)?));
+                }
+                Resize::Identity => {}
+                Resize::Down(conv) => conv.named(&format!("resize_layers.{k}"), &mut out),
+            }
+            level.layer_rn.named(&format!("layer_rn.{k}"), &mut out);
+        }
+        for (k, block) in self.refinenet.iter().enumerate() {
+            block.named(&format!("refinenet.{k}"), &mut out);
+        }
+        self.output_conv.named("output_conv", &mut out);
+        Ok(out)
+    }
+
     pub fn forward(&self, feats: &[Tensor; 4], image: &Tensor) -> Result<Tensor> {
         let (b, ch, h, w) = image.dims4()?;
         if ch != 3 || h != self.dino_size || w != self.dino_size {

@@ -203,6 +203,22 @@ impl LinearGsGenerator {
         )
     }
 
+    /// Every weight under its key relative to `gs_generator_g.`.
+    pub fn named_weights(&self) -> Vec<(String, Tensor)> {
+        let mut out = Vec::new();
+        for (i, l) in self.feature_layers.iter().enumerate() {
+            l.named(&format!("feature_layers.{}", 2 * i), &mut out);
+        }
+        for (name, h) in ["color", "opacity", "scale", "rotation"]
+            .iter()
+            .zip(self.heads())
+        {
+            h.l0.named(&format!("{name}_layers.0"), &mut out);
+            h.l2.named(&format!("{name}_layers.2"), &mut out);
+        }
+        out
+    }
+
     fn heads(&self) -> [&Head; 4] {
         [&self.color, &self.opacity, &self.scale, &self.rotation]
     }
@@ -397,6 +413,15 @@ impl ConvGsGenerator {
             c.set_precision(precision)?;
         }
         Ok(())
+    }
+
+    /// Every weight under its key relative to `gs_generator_l0.` (or `_l1.`).
+    pub fn named_weights(&self) -> Vec<(String, Tensor)> {
+        let mut out = Vec::new();
+        for (i, c) in self.convs.iter().enumerate() {
+            c.named(&format!("gaussian_conv.{}", 2 * i), &mut out);
+        }
+        out
     }
 
     pub fn forward(&self, f_local: &Tensor, encoding: &Tensor) -> Result<LiftedAttributes> {

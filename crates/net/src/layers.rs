@@ -74,6 +74,14 @@ impl Conv2d {
         Self::new(vb, cin, cout, 3, 1, 1, true)
     }
 
+    /// `prefix.weight` and, with a bias, `prefix.bias` (the checkpoint's keys and shapes).
+    pub fn named(&self, prefix: &str, out: &mut Vec<(String, Tensor)>) {
+        out.push((format!("{prefix}.weight"), self.weight.clone()));
+        if let Some(b) = &self.bias {
+            out.push((format!("{prefix}.bias"), b.clone()));
+        }
+    }
+
     /// A 1x1 convolution with bias.
     pub fn k1(vb: VarBuilder, cin: usize, cout: usize) -> Result<Self> {
         Self::new(vb, cin, cout, 1, 1, 0, true)
@@ -137,6 +145,14 @@ impl Linear {
     /// The layer as candle holds it (its weight and bias).
     pub fn inner(&self) -> &candle_nn::Linear {
         &self.inner
+    }
+
+    /// `prefix.weight` and, with a bias, `prefix.bias`.
+    pub fn named(&self, prefix: &str, out: &mut Vec<(String, Tensor)>) {
+        out.push((format!("{prefix}.weight"), self.inner.weight().clone()));
+        if let Some(b) = self.inner.bias() {
+            out.push((format!("{prefix}.bias"), b.clone()));
+        }
     }
 
     /// Switches between f32 and bf16 products (bf16: fixed weights only, inference).

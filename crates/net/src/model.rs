@@ -328,6 +328,35 @@ impl GagAvatar {
         })
     }
 
+    /// Every weight the model computes with, under its checkpoint key: all of
+    /// [`crate::checkpoint::expected_keys`] but the renderer's `toRGB.*`, which the release
+    /// holds and never uses. Values in the checkpoint's order; a few renderer weights come
+    /// without the checkpoint's leading or trailing 1s (`[1, c, 1, 1]` biases as `[c]`).
+    pub fn named_weights(&self) -> Result<Vec<(String, Tensor)>> {
+        let mut out = Vec::new();
+        for (k, t) in self.dino.named_weights()? {
+            out.push((format!("{}{k}", crate::config::BACKBONE_PREFIX), t));
+        }
+        for (k, t) in self.dpt.named_weights()? {
+            out.push((format!("base_model.{k}"), t));
+        }
+        out.push(("head_base".to_string(), self.head_base.clone()));
+        let gens = [
+            ("gs_generator_g", self.gen_g.named_weights()),
+            ("gs_generator_l0", self.gen_l0.named_weights()),
+            ("gs_generator_l1", self.gen_l1.named_weights()),
+        ];
+        for (prefix, list) in gens {
+            for (k, t) in list {
+                out.push((format!("{prefix}.{k}"), t));
+            }
+        }
+        for (k, t) in self.renderer.named_weights() {
+            out.push((format!("upsampler.{k}"), t));
+        }
+        Ok(out)
+    }
+
     /// Weights the model holds as fixed tensors rather than variables, under their checkpoint
     /// keys in the checkpoint's layout: the DINOv2 backbone when it is not trainable, and the
     /// renderer's noise buffers (buffers in the release, never trained).

@@ -205,3 +205,47 @@ fn torch_checkpoint_round_trips_bit_exactly() {
         .collect();
     assert!(leftovers.is_empty(), "{leftovers:?}");
 }
+
+#[test]
+fn named_weights_give_back_every_key_and_value_the_model_was_built_from() {
+    let cfg = ModelConfig::tiny();
+    let data = init_weights(&cfg, 3).unwrap();
+    let dev = Device::Cpu;
+    let tensors = data
+        .iter()
+        .map(|(k, (shape, v))| {
+            (
+                k.clone(),
+                Tensor::from_vec(v.clone(), shape.as_slice(), &dev).unwrap(),
+            )
+        })
+        .collect();
+    let model = checkpoint::build_model(&cfg, tensors, &dev).unwrap();
+    let named = model.named_weights().unwrap();
+    let mut seen = BTreeMap::new();
+    for (k, t) in &named {
+        assert!(seen.insert(k.clone(), ()).is_none(), "{k} listed twice");
+        let (shape, v) = data
+            .get(k)
+            .unwrap_or_else(|| panic!("{k} is not a checkpoint key"));
+        assert_eq!(
+            t.elem_count(),
+            shape.iter().product::<usize>(),
+            "{k}: {:?} against the checkpoint's {shape:?}",
+            t.dims()
+        );
+        let got = t
+            .to_dtype(DType::F32)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap();
+        assert!(&got == v, "{k}: values differ from the file's");
+    }
+    let missing: Vec<&String> = data
+        .keys()
+        .filter(|k| !seen.contains_key(*k) && !k.starts_with("upsampler.toRGB."))
+        .collect();
+    assert!(missing.is_empty(), "not listed: {missing:?}");
+}
