@@ -66,13 +66,38 @@ pub struct Conv<'a> {
     pub out_scale: Option<u32>,
     /// `[h, w]` noise and its weight.
     pub noise: Option<(At<'a>, f32)>,
-    pub lrelu: bool,
+    /// ReLU of the input as it is read.
+    pub in_relu: bool,
+    pub act: Act,
     /// `[cout, h, w]` added after the activation.
     pub residual: Option<At<'a>>,
     /// SFT scale and shift maps `[cout, h, w]` (in one buffer).
     pub sft: Option<(&'a wgpu::Buffer, u32, u32)>,
     pub sigmoid: bool,
     pub out: At<'a>,
+}
+
+/// The activation of a convolution's epilogue.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum Act {
+    #[default]
+    None,
+    /// Leaky ReLU with slope 0.2 (the renderer).
+    Lrelu,
+    Relu,
+    /// GELU with erf (the ViT's MLP).
+    Gelu,
+}
+
+impl Act {
+    fn code(self) -> u32 {
+        match self {
+            Act::None => 0,
+            Act::Lrelu => 1,
+            Act::Relu => 2,
+            Act::Gelu => 3,
+        }
+    }
 }
 
 /// Records the renderer's kernels; holds what all of them share.
@@ -227,10 +252,11 @@ fn mma_parts(t: MmaTile) -> [(&'static str, String); 3] {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct Options {
     pub in_scale: bool,
+    pub in_relu: bool,
     pub out_scale: bool,
     pub bias: bool,
     pub noise: bool,
-    pub lrelu: bool,
+    pub act: Act,
     pub resid: bool,
     pub sft: bool,
     pub sigmoid: bool,
@@ -240,10 +266,11 @@ impl Conv<'_> {
     pub fn options(&self) -> Options {
         Options {
             in_scale: self.in_scale.is_some(),
+            in_relu: self.in_relu,
             out_scale: self.out_scale.is_some(),
             bias: self.bias.is_some(),
             noise: self.noise.is_some(),
-            lrelu: self.lrelu,
+            act: self.act,
             resid: self.residual.is_some(),
             sft: self.sft.is_some(),
             sigmoid: self.sigmoid,
@@ -281,10 +308,11 @@ pub fn conv_consts(tile: Tile, k: usize, split: u32, o: Options) -> Vec<(&'stati
         ("KSIZE", k.to_string()),
         ("SPLIT", split.to_string()),
         ("IN_SCALE", flag(o.in_scale)),
+        ("IN_RELU", flag(o.in_relu)),
         ("OUT_SCALE", flag(o.out_scale)),
         ("BIAS", flag(o.bias)),
         ("NOISE", flag(o.noise)),
-        ("LRELU", flag(o.lrelu)),
+        ("ACT", o.act.code().to_string()),
         ("RESID", flag(o.resid)),
         ("SFT", flag(o.sft)),
         ("SIGMOID", flag(o.sigmoid)),
@@ -417,7 +445,7 @@ impl Ops<'_> {
             .filter(|(n, _)| {
                 matches!(
                     *n,
-                    "OUT_SCALE" | "BIAS" | "NOISE" | "LRELU" | "RESID" | "SFT" | "SIGMOID"
+                    "OUT_SCALE" | "BIAS" | "NOISE" | "ACT" | "RESID" | "SFT" | "SIGMOID"
                 )
             })
             .collect();
@@ -503,6 +531,22 @@ impl Ops<'_> {
         lrelu: bool,
         out: At,
     ) -> Result<Step> {
+        self.linear_strided(n_in, n_out, (x, 1), weight, bias, lrelu, out)
+    }
+
+    /// [`Ops::linear`] reading `x` every `stride` values (a column of a channel-major
+    /// activation).
+    #[allow(clippy::too_many_arguments)]
+    pub fn linear_strided(
+        &self,
+        n_in: usize,
+        n_out: usize,
+        (x, stride): (At, usize),
+        weight: &wgpu::Buffer,
+        bias: &wgpu::Buffer,
+        lrelu: bool,
+        out: At,
+    ) -> Result<Step> {
         let k = self.gpu.kernel(
             "linear",
             LINEAR,
@@ -522,7 +566,8 @@ impl Ops<'_> {
                 .u(n_out as u32)
                 .u(x.off)
                 .u(out.off)
-                .u(lrelu as u32),
+                .u(lrelu as u32)
+                .u(stride as u32),
         );
         let g = self.gpu.bind(&k, &[&u, x.buf, weight, bias, out.buf])?;
         let gx = n_out.min(65535) as u32;
@@ -606,7 +651,8 @@ mod tests {
         in_scale: bool,
         out_scale: bool,
         noise: bool,
-        lrelu: bool,
+        in_relu: bool,
+        act: Act,
         residual: bool,
         sft: bool,
         sigmoid: bool,
@@ -643,7 +689,10 @@ mod tests {
                                 if yy < 0 || xx < 0 || yy >= h as isize || xx >= wd as isize {
                                     continue;
                                 }
-                                let xv = x[7 + ci * hw + yy as usize * wd + xx as usize] as f64;
+                                let mut xv = x[7 + ci * hw + yy as usize * wd + xx as usize] as f64;
+                                if o.in_relu {
+                                    xv = xv.max(0.0);
+                                }
                                 acc += w[((co * cin + ci) * k + ky) * k + kx] as f64 * xv * s;
                             }
                         }
@@ -659,9 +708,16 @@ mod tests {
                     if o.noise {
                         v += noise_w as f64 * aux[3 + p] as f64;
                     }
-                    if o.lrelu {
-                        v = v.max(0.2 * v);
-                    }
+                    v = match o.act {
+                        Act::None => v,
+                        Act::Lrelu => v.max(0.2 * v),
+                        Act::Relu => v.max(0.0),
+                        Act::Gelu => {
+                            0.5 * v
+                                * (1.0
+                                    + candle_core::cpu::erf::erf_f64(v / std::f64::consts::SQRT_2))
+                        }
+                    };
                     if o.residual {
                         v += aux[3 + co * hw + p] as f64;
                     }
@@ -726,10 +782,11 @@ mod tests {
         use naga::valid::{Capabilities, ValidationFlags, Validator};
         let all = Options {
             in_scale: true,
+            in_relu: true,
             out_scale: true,
             bias: true,
             noise: true,
-            lrelu: true,
+            act: Act::Lrelu,
             resid: false,
             sft: true,
             sigmoid: true,
@@ -757,6 +814,15 @@ mod tests {
             (big, 3, 0, all),
             (t.mma_tile, 3, 0, all),
             (t.mma_tile, 1, 0, resid),
+            (
+                t.mma_tile,
+                1,
+                0,
+                Options {
+                    act: Act::Gelu,
+                    ..resid
+                },
+            ),
             (t.mma_small, 3, 288, Options::default()),
             (other, 3, 0, all),
         ] {
@@ -785,7 +851,8 @@ mod tests {
             in_scale: true,
             out_scale: true,
             noise: true,
-            lrelu: true,
+            in_relu: false,
+            act: Act::Lrelu,
             residual: false,
             sft: true,
             sigmoid: false,
@@ -811,8 +878,35 @@ mod tests {
                 40,
                 3,
                 Opts {
-                    lrelu: true,
+                    act: Act::Lrelu,
                     residual: true,
+                    bias: true,
+                    ..Opts::default()
+                },
+            ),
+            (
+                12,
+                9,
+                9,
+                11,
+                3,
+                Opts {
+                    in_relu: true,
+                    act: Act::Relu,
+                    residual: true,
+                    bias: true,
+                    ..Opts::default()
+                },
+            ),
+            (
+                40,
+                17,
+                1,
+                37,
+                1,
+                Opts {
+                    act: Act::Gelu,
+                    out_scale: true,
                     bias: true,
                     ..Opts::default()
                 },
@@ -879,7 +973,8 @@ mod tests {
                         in_scale: o.in_scale.then_some(100),
                         out_scale: o.out_scale.then_some(200),
                         noise: o.noise.then_some((At::off(&ab, 3), 0.7)),
-                        lrelu: o.lrelu,
+                        in_relu: o.in_relu,
+                        act: o.act,
                         residual: o.residual.then_some(At::off(&ab, 3)),
                         sft: o.sft.then_some((&sb, 0, (cout * hw) as u32)),
                         sigmoid: o.sigmoid,

@@ -13,7 +13,7 @@ use std::f32::consts::SQRT_2;
 
 use gagavatar_net::ModelConfig;
 
-use crate::conv::{At, Conv, Ops};
+use crate::conv::{Act, At, Conv, Ops};
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
 use crate::kernel::Step;
@@ -369,7 +369,8 @@ impl GpuRenderer {
                 in_scale: None,
                 out_scale: None,
                 noise: None,
-                lrelu: false,
+                in_relu: false,
+                act: Act::None,
                 residual: None,
                 sft: None,
                 sigmoid: false,
@@ -390,7 +391,8 @@ impl GpuRenderer {
                     in_scale: None,
                     out_scale: None,
                     noise: None,
-                    lrelu: true,
+                    in_relu: false,
+                    act: Act::Lrelu,
                     residual,
                     sft: None,
                     sigmoid: false,
@@ -528,7 +530,12 @@ impl GpuRenderer {
                 in_scale: Some(style_of(m)),
                 out_scale: m.demod.as_ref().map(|(off, _)| *off),
                 noise: noise_map.map(|i| (At::off(&noise, noise_offsets[i]), m.noise_weight)),
-                lrelu: m.demod.is_some(),
+                in_relu: false,
+                act: if m.demod.is_some() {
+                    Act::Lrelu
+                } else {
+                    Act::None
+                },
                 residual,
                 sft: sft.map(|b| (b, 0, (m.cout * r * r) as u32)),
                 sigmoid,

@@ -10,6 +10,19 @@ fn lrelu(v: f32) -> f32 {
     return max(v, 0.2 * v);
 }
 
+// GELU with erf from Abramowitz & Stegun 7.1.26 (|erf error| < 1.5e-7), the formula of the
+// CPU path's ViT (and PyTorch's vectorised CPU erf).
+fn gelu_erf(v: f32) -> f32 {
+    let z = abs(v) * 0.70710678118654752;
+    let t = 1.0 / (1.0 + 0.3275911 * z);
+    let poly = t * (0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429))));
+    var e = 1.0 - poly * exp(-z * z);
+    if (v < 0.0) {
+        e = -e;
+    }
+    return 0.5 * v * (1.0 + e);
+}
+
 // The CPU splatting's exp (gagavatar_splat::real::exp_f32), operation for operation: Cody-Waite
 // range reduction, a degree-7 polynomial in Horner form with fused multiply-adds, 2^k from the
 // exponent bits. Where the device fuses as the CPU does, the results are bit-identical.

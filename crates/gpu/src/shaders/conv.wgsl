@@ -4,9 +4,9 @@
 // staging BK-deep slices of the weights and of the (im2col) input in workgroup memory.
 //
 // Options (compile-time flags): per-input-channel scale of the input (a modulated conv's
-// style), per-output-channel scale (its demodulation x gain), then
-//   v = acc * out_scale + bias + noise_weight * noise; lrelu; + residual; * sft_scale +
-//   sft_shift; sigmoid
+// style) and ReLU of the input, per-output-channel scale (its demodulation x gain), then
+//   v = acc * out_scale + bias + noise_weight * noise; activation (leaky ReLU, ReLU or GELU);
+//   + residual; * sft_scale + sft_shift; sigmoid
 // in the CPU path's order (`conv_epilogue.wgsl`, appended to this source with `conv_io.wgsl`:
 // the parameters, buffers, im2col read and output write conv_mma.wgsl shares). With split-K
 // (SPLIT > 0) a workgroup covers only `SPLIT` of the depth and writes raw partial sums;

@@ -25,7 +25,8 @@ struct P {
 const OUT_SCALE: bool = {{OUT_SCALE}};
 const BIAS: bool = {{BIAS}};
 const NOISE: bool = {{NOISE}};
-const LRELU: bool = {{LRELU}};
+// The activation: 0 none, 1 leaky ReLU (0.2), 2 ReLU, 3 GELU (erf).
+const ACT: u32 = {{ACT}}u;
 const RESID: bool = {{RESID}};
 const SFT: bool = {{SFT}};
 const SIGMOID: bool = {{SIGMOID}};
@@ -41,8 +42,12 @@ fn epilogue(acc: f32, co: u32, pix: u32, hw: u32) -> f32 {
     if (NOISE) {
         v = v + p.noise_w * aux[p.aux_off + pix];
     }
-    if (LRELU) {
+    if (ACT == 1u) {
         v = lrelu(v);
+    } else if (ACT == 2u) {
+        v = max(v, 0.0);
+    } else if (ACT == 3u) {
+        v = gelu_erf(v);
     }
     if (RESID) {
         v = v + aux[p.aux_off + co * hw + pix];

@@ -7,6 +7,8 @@ const TAPS: u32 = KS * KS;
 const PAD: i32 = i32(KS / 2u);
 const SPLIT: u32 = {{SPLIT}}u;
 const IN_SCALE: bool = {{IN_SCALE}};
+// ReLU on the input as it is read (DPT's pre-activation residual units).
+const IN_RELU: bool = {{IN_RELU}};
 
 @group(0) @binding(0) var<uniform> p: P;
 @group(0) @binding(1) var<storage, read> x: array<f32>;
@@ -37,6 +39,9 @@ fn load_x(kidx: u32, k_hi: u32, pix: u32, py: i32, px: i32) -> f32 {
     var v = x[p.in_off + ci * hw + u32(yy) * p.w + u32(xx)];
     if (IN_SCALE) {
         v = v * vecs[p.insc_off + ci];
+    }
+    if (IN_RELU) {
+        v = max(v, 0.0);
     }
     return v;
 }

@@ -1,5 +1,6 @@
-// y[o] = sum_i W[o, i] x[i] + b[o] (optionally leaky ReLU), one workgroup per output row:
-// the renderer's style code, mapping network and the stacked style modulations.
+// y[o] = sum_i W[o, i] x[i stride] + b[o] (optionally leaky ReLU), one workgroup per output
+// row: the renderer's style code, mapping network and the stacked style modulations, and the
+// expression generator's identity row (x: a column of a channel-major activation).
 
 struct P {
     n_in: u32,
@@ -7,7 +8,7 @@ struct P {
     x_off: u32,
     y_off: u32,
     lrelu: u32,
-    _p0: u32,
+    x_stride: u32,
     _p1: u32,
     _p2: u32,
 }
@@ -29,7 +30,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     }
     var s = 0.0;
     for (var i = t; i < p.n_in; i = i + 64u) {
-        s = fma(wt[o * p.n_in + i], x[p.x_off + i], s);
+        s = fma(wt[o * p.n_in + i], x[p.x_off + i * p.x_stride], s);
     }
     part[t] = s;
     workgroupBarrier();
