@@ -19,8 +19,9 @@ use crate::device::Gpu;
 use crate::error::{input_err, GpuError, Result};
 use crate::flame::{FrameCodes, GpuFlame};
 use crate::kernel::{map_read, Step};
+use crate::reconstruct::GpuAvatar;
 use crate::renderer::GpuRenderer;
-use crate::splat::{GpuSplat, SplatInputs};
+use crate::splat::{GpuSplat, SplatBuffers, SplatInputs};
 use crate::tuning::Tuning;
 
 /// Names of the stages [`GpuDrive::profile`] times, in order.
@@ -74,6 +75,12 @@ pub fn camera(transform: &[[f64; 4]; 3], size: usize) -> Result<Camera> {
     let tm = transform.map(|row| row.map(|v| v as f32 as f64));
     Camera::from_transform_matrix(&tm, FOCAL, size, size)
         .map_err(|e| input_err("camera", e.to_string()))
+}
+
+/// Where the avatar's Gaussians come from.
+enum Gaussians<'a> {
+    Host(&'a SplatInputs<'a>),
+    Device(SplatBuffers),
 }
 
 /// The drive pipeline for one avatar.
@@ -149,8 +156,6 @@ impl GpuDrive {
         identity: &FlameIdentity,
         noise: Noise,
     ) -> Result<Self> {
-        let tuning = &tuning.for_device(&gpu);
-        tuning.check(&gpu.limits)?;
         if avatar.batch() != 1 {
             return Err(input_err(
                 "avatar",
@@ -160,6 +165,82 @@ impl GpuDrive {
                 ),
             ));
         }
+        let means = host(&avatar.lifted_xyz, "avatar positions")?;
+        let features = host(&avatar.colors, "avatar features")?;
+        let opacities = host(&avatar.opacities, "avatar opacities")?;
+        let scales = host(&avatar.scales, "avatar scales")?;
+        let rotations = host(&avatar.rotations, "avatar rotations")?;
+        let inputs = SplatInputs {
+            means: &means,
+            features: &features,
+            channels: cfg.color_dim,
+            opacities: &opacities,
+            scales: &scales,
+            rotations: &rotations,
+            background: &vec![0f32; cfg.color_dim],
+        };
+        Self::build(
+            gpu,
+            tuning,
+            cfg,
+            renderer,
+            Gaussians::Host(&inputs),
+            flame,
+            identity,
+            noise,
+        )
+    }
+
+    /// [`GpuDrive::new`] for an avatar that [`GpuReconstruct`] left on the GPU: its buffers
+    /// are the splatting's, nothing goes through the host.
+    #[allow(clippy::too_many_arguments)]
+    pub fn from_gpu_avatar(
+        gpu: Arc<Gpu>,
+        tuning: &Tuning,
+        cfg: &ModelConfig,
+        renderer: &StyleUNet,
+        avatar: &GpuAvatar,
+        flame: &FlameModel,
+        identity: &FlameIdentity,
+        noise: Noise,
+    ) -> Result<Self> {
+        if avatar.n != cfg.n_gaussians() || avatar.channels != cfg.color_dim {
+            return Err(input_err(
+                "avatar",
+                format!(
+                    "{} Gaussians of {} channels, the model makes {} of {}",
+                    avatar.n,
+                    avatar.channels,
+                    cfg.n_gaussians(),
+                    cfg.color_dim
+                ),
+            ));
+        }
+        Self::build(
+            gpu,
+            tuning,
+            cfg,
+            renderer,
+            Gaussians::Device(avatar.splat_buffers()),
+            flame,
+            identity,
+            noise,
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn build(
+        gpu: Arc<Gpu>,
+        tuning: &Tuning,
+        cfg: &ModelConfig,
+        renderer: &StyleUNet,
+        gaussians: Gaussians,
+        flame: &FlameModel,
+        identity: &FlameIdentity,
+        noise: Noise,
+    ) -> Result<Self> {
+        let tuning = &tuning.for_device(&gpu);
+        tuning.check(&gpu.limits)?;
         let nv = cfg.n_vertices;
         if flame.n_vertices != nv {
             return Err(input_err(
@@ -169,30 +250,21 @@ impl GpuDrive {
         }
         let s = cfg.image_size;
         let c = cfg.color_dim;
-        let means = host(&avatar.lifted_xyz, "avatar positions")?;
-        let features = host(&avatar.colors, "avatar features")?;
-        let opacities = host(&avatar.opacities, "avatar opacities")?;
-        let scales = host(&avatar.scales, "avatar scales")?;
-        let rotations = host(&avatar.rotations, "avatar rotations")?;
-        let background = vec![0f32; c];
         let gflame = GpuFlame::new(&gpu, flame, identity)?;
-        let splat = GpuSplat::new(
-            &gpu,
-            tuning,
-            &SplatInputs {
-                means: &means,
-                features: &features,
-                channels: c,
-                opacities: &opacities,
-                scales: &scales,
-                rotations: &rotations,
-                background: &background,
-            },
-            Some(&gflame.vertices),
-            nv,
-            s,
-            s,
-        )?;
+        let splat = match gaussians {
+            Gaussians::Host(inputs) => {
+                GpuSplat::new(&gpu, tuning, inputs, Some(&gflame.vertices), nv, s, s)?
+            }
+            Gaussians::Device(buffers) => GpuSplat::from_buffers(
+                &gpu,
+                tuning,
+                buffers,
+                &vec![0f32; c],
+                Some(&gflame.vertices),
+                nv,
+                (s, s),
+            )?,
+        };
         let renderer = if cfg.no_neural_renderer {
             None
         } else {
@@ -608,32 +680,15 @@ mod tests {
     use super::*;
     use crate::renderer::tests::{cpu_renderer, FINE_TOL, RELEASE_FINE_TOL};
     use crate::splat::tests::{flip_tol, max_flipped_pixels};
-    use crate::testutil::{assert_close, assert_close_but_flips, gpu};
+    use crate::testutil::{assert_close, assert_close_but_flips, seeded_model, shared_gpu};
     use gagavatar_flame::{synthesize, FlameConfig};
-    use gagavatar_net::checkpoint::{build_model, init_weights};
     use gagavatar_splat::testscene::{avatar_scene, Regime, Rng};
     use gagavatar_splat::{splat, Gaussians};
-    use std::collections::HashMap;
 
     /// The coarse image's bound (the issue's): see the splatting tests.
     const COARSE_TOL: f64 = 1e-4;
     /// FLAME vertices (see the FLAME tests).
     const VERTEX_TOL: f64 = 1e-5;
-
-    fn shared_gpu() -> Option<Arc<Gpu>> {
-        // The tests' device, shared (the drive keeps an Arc).
-        static GPU: std::sync::OnceLock<Option<Arc<Gpu>>> = std::sync::OnceLock::new();
-        GPU.get_or_init(|| {
-            // `gpu()` skips (or fails, when a device is required) where there is none; once one
-            // was opened, failing to open it again is a real failure, never a skip.
-            gpu()?;
-            match Gpu::new(crate::AdapterPolicy::AllowCpu) {
-                Ok(g) => Some(Arc::new(g)),
-                Err(e) => panic!("a second device on the adapter the tests opened: {e}"),
-            }
-        })
-        .clone()
-    }
 
     fn flat(t: &Tensor) -> Vec<f32> {
         t.flatten_all().unwrap().to_vec1().unwrap()
@@ -651,16 +706,6 @@ mod tests {
             pose: r(6, 0.1).try_into().unwrap(),
             eye: r(6, 0.05).try_into().unwrap(),
         }
-    }
-
-    /// The model of `cfg` with seeded weights.
-    fn seeded_model(cfg: &ModelConfig, seed: u64) -> GagAvatar {
-        let map: HashMap<String, Tensor> = init_weights(cfg, seed)
-            .unwrap()
-            .into_iter()
-            .map(|(k, (s, v))| (k, Tensor::from_vec(v, s, &Device::Cpu).unwrap()))
-            .collect();
-        build_model(cfg, map, &Device::Cpu).unwrap()
     }
 
     fn flame_setup(seed: u64) -> (FlameModel, FlameIdentity) {
@@ -745,6 +790,79 @@ mod tests {
                 assert!(d.pair_capacity() > before, "the pair buffers never grew");
             }
         }
+    }
+
+    /// An avatar reconstructed on the GPU drives from its own buffers exactly as its
+    /// read-back copy does through the host (the parity of the Gaussians themselves is
+    /// reconstruct's test).
+    #[test]
+    fn gpu_avatar_drives_like_its_download() {
+        let Some(g) = shared_gpu() else { return };
+        let cfg = ModelConfig::tiny();
+        let model = seeded_model(&cfg, 4);
+        let (flame, identity) = flame_setup(2);
+        let size = cfg.image_size;
+        let mut rng = Rng::new(8);
+        let img: Vec<f32> = (0..3 * size * size).map(|_| rng.uniform() as f32).collect();
+        let img = Tensor::from_vec(img, (1, 3, size, size), &Device::Cpu).unwrap();
+        let src = Camera::look_at_origin_matrix(9.0, std::f64::consts::PI, 0.0);
+        let v: Vec<f32> = src.iter().flatten().map(|&x| x as f32).collect();
+        let tm = Tensor::from_vec(v, (1, 3, 4), &Device::Cpu).unwrap();
+        let rec =
+            crate::reconstruct::GpuReconstruct::new(g.clone(), &Tuning::default(), &model).unwrap();
+        let host = rec.reconstruct(&img, &tm).unwrap();
+        let t = Tuning::default();
+        let mut on_gpu = GpuDrive::from_gpu_avatar(
+            g.clone(),
+            &t,
+            &cfg,
+            &model.renderer,
+            &rec.avatar,
+            &flame,
+            &identity,
+            Noise::Fixed,
+        )
+        .unwrap();
+        let mut via_host = GpuDrive::from_model(
+            g.clone(),
+            &t,
+            &model,
+            &host,
+            &flame,
+            &identity,
+            Noise::Fixed,
+        )
+        .unwrap();
+        for f in 0..3 {
+            let codes = random_codes(&mut rng, flame.config.n_exp);
+            let cam =
+                Camera::look_at_origin_matrix(9.0, std::f64::consts::PI + 0.1 * f as f64, 0.0);
+            let a = on_gpu.frame(&codes, &cam).unwrap();
+            let b = via_host.frame(&codes, &cam).unwrap();
+            assert!(a.iter().any(|v| *v != 0.0), "frame {f} is blank");
+            if let Some(i) = a.iter().zip(&b).position(|(x, y)| x != y) {
+                panic!(
+                    "frame {f}: value {i}: via the host {}, from the GPU avatar {}",
+                    b[i], a[i]
+                );
+            }
+        }
+        let mut wrong = cfg.clone();
+        wrong.color_dim += 1;
+        assert!(
+            GpuDrive::from_gpu_avatar(
+                g.clone(),
+                &t,
+                &wrong,
+                &model.renderer,
+                &rec.avatar,
+                &flame,
+                &identity,
+                Noise::Fixed,
+            )
+            .is_err(),
+            "an avatar of another model is refused"
+        );
     }
 
     /// The whole tiny model: GPU frames against `GagAvatar::drive` on an avatar from

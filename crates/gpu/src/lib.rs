@@ -10,6 +10,7 @@ pub mod flame;
 pub mod kernel;
 pub mod pipelines;
 pub mod policy;
+pub mod reconstruct;
 pub mod renderer;
 pub mod sort;
 pub mod splat;

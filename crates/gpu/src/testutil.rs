@@ -1,6 +1,12 @@
 //! Shared by the kernels' tests: one device per test binary and the comparison helpers.
 
-use std::sync::OnceLock;
+use std::collections::HashMap;
+use std::sync::{Arc, OnceLock};
+
+use candle_core::{Device, Tensor};
+use gagavatar_net::checkpoint::{build_model, init_weights};
+use gagavatar_net::model::GagAvatar;
+use gagavatar_net::ModelConfig;
 
 use crate::device::{AdapterPolicy, Gpu};
 
@@ -114,4 +120,29 @@ pub fn assert_close_but_flips(
         flipped.len(),
         flipped.iter().take(8).collect::<Vec<_>>()
     );
+}
+
+/// The tests' device as an `Arc` (the drive and reconstruct keep one), shared.
+pub fn shared_gpu() -> Option<Arc<Gpu>> {
+    static GPU: std::sync::OnceLock<Option<Arc<Gpu>>> = std::sync::OnceLock::new();
+    GPU.get_or_init(|| {
+        // `gpu()` skips (or fails, when a device is required) where there is none; once one
+        // was opened, failing to open it again is a real failure, never a skip.
+        gpu()?;
+        match Gpu::new(AdapterPolicy::AllowCpu) {
+            Ok(g) => Some(Arc::new(g)),
+            Err(e) => panic!("a second device on the adapter the tests opened: {e}"),
+        }
+    })
+    .clone()
+}
+
+/// The model of `cfg` with seeded weights.
+pub fn seeded_model(cfg: &ModelConfig, seed: u64) -> GagAvatar {
+    let map: HashMap<String, Tensor> = init_weights(cfg, seed)
+        .unwrap()
+        .into_iter()
+        .map(|(k, (s, v))| (k, Tensor::from_vec(v, s, &Device::Cpu).unwrap()))
+        .collect();
+    build_model(cfg, map, &Device::Cpu).unwrap()
 }

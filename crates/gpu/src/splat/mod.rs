@@ -36,6 +36,18 @@ pub struct SplatInputs<'a> {
     pub background: &'a [f32],
 }
 
+/// Gaussian attributes in GPU buffers, in [`SplatInputs`]' layouts (`n` Gaussians, `channels`
+/// features; `means` holds the positions after the head vertices).
+pub struct SplatBuffers {
+    pub n: usize,
+    pub channels: usize,
+    pub means: wgpu::Buffer,
+    pub features: wgpu::Buffer,
+    pub opacities: wgpu::Buffer,
+    pub scales: wgpu::Buffer,
+    pub rotations: wgpu::Buffer,
+}
+
 /// The splatting pipeline for one set of Gaussians and one image size.
 pub struct GpuSplat {
     pub n: usize,
@@ -89,9 +101,60 @@ impl GpuSplat {
         width: usize,
         height: usize,
     ) -> Result<Self> {
-        tuning.check(&gpu.limits)?;
         let n = inputs.opacities.len();
         let c = inputs.channels;
+        if n_vertices > n {
+            return Err(input_err(
+                "gaussians",
+                format!("{n_vertices} head vertices but only {n} Gaussians"),
+            ));
+        }
+        check_len("means", inputs.means, 3 * (n - n_vertices))?;
+        check_len("features", inputs.features, n * c)?;
+        check_len("opacities", inputs.opacities, n)?;
+        check_len("scales", inputs.scales, 3 * n)?;
+        check_len("rotations", inputs.rotations, 4 * n)?;
+        let buffers = SplatBuffers {
+            n,
+            channels: c,
+            means: gpu.buffer_with("means", inputs.means),
+            opacities: gpu.buffer_with("opacities", inputs.opacities),
+            scales: gpu.buffer_with("scales", inputs.scales),
+            rotations: gpu.buffer_with("rotations", inputs.rotations),
+            features: gpu.buffer_with("features", inputs.features),
+        };
+        Self::from_buffers(
+            gpu,
+            tuning,
+            buffers,
+            inputs.background,
+            head,
+            n_vertices,
+            (width, height),
+        )
+    }
+
+    /// [`GpuSplat::new`] for Gaussians already on the GPU (e.g. written by
+    /// [`crate::reconstruct::GpuReconstruct`]): nothing is copied.
+    pub fn from_buffers(
+        gpu: &Gpu,
+        tuning: &Tuning,
+        buffers: SplatBuffers,
+        background: &[f32],
+        head: Option<&wgpu::Buffer>,
+        n_vertices: usize,
+        (width, height): (usize, usize),
+    ) -> Result<Self> {
+        tuning.check(&gpu.limits)?;
+        let SplatBuffers {
+            n,
+            channels: c,
+            means: rest,
+            features,
+            opacities,
+            scales,
+            rotations,
+        } = buffers;
         if n_vertices > n {
             return Err(input_err(
                 "gaussians",
@@ -108,12 +171,21 @@ impl GpuSplat {
         {
             return Err(input_err("image", format!("size {width}x{height}")));
         }
-        check_len("means", inputs.means, 3 * (n - n_vertices))?;
-        check_len("features", inputs.features, n * c)?;
-        check_len("opacities", inputs.opacities, n)?;
-        check_len("scales", inputs.scales, 3 * n)?;
-        check_len("rotations", inputs.rotations, 4 * n)?;
-        check_len("background", inputs.background, c)?;
+        check_len("background", background, c)?;
+        for (name, buf, len) in [
+            ("means", &rest, 3 * (n - n_vertices)),
+            ("features", &features, n * c),
+            ("opacities", &opacities, n),
+            ("scales", &scales, 3 * n),
+            ("rotations", &rotations, 4 * n),
+        ] {
+            if buf.size() < 4 * len as u64 {
+                return Err(input_err(
+                    name,
+                    format!("a {}-byte buffer for {len} values", buf.size()),
+                ));
+            }
+        }
         let head = match (head, n_vertices) {
             (Some(h), _) => h.clone(),
             (None, 0) => gpu.buffer("no head", 16),
@@ -132,12 +204,7 @@ impl GpuSplat {
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let rest = gpu.buffer_with("means", inputs.means);
-        let opacities = gpu.buffer_with("opacities", inputs.opacities);
-        let scales = gpu.buffer_with("scales", inputs.scales);
-        let rotations = gpu.buffer_with("rotations", inputs.rotations);
-        let features = gpu.buffer_with("features", inputs.features);
-        let background = gpu.buffer_with("background", inputs.background);
+        let background = gpu.buffer_with("background", background);
         let image = gpu.buffer("coarse image", 4 * (c * width * height) as u64);
         let proj = project::Projected::new(gpu, n);
         let project = project::step(
