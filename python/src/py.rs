@@ -19,6 +19,7 @@ use gagavatar_avatar::{
     Monitor, TrackTo,
 };
 use gagavatar_flame::TrackedFrame;
+use gagavatar_gpu::reconstruct::GpuReconstruct;
 use gagavatar_gpu::{AdapterPolicy, Gpu};
 use gagavatar_net::style_unet::Noise;
 
@@ -91,6 +92,8 @@ pub struct Engine {
     gpu: Option<Arc<Gpu>>,
     /// The GPU drive's knobs with the chosen convolution precision.
     tuning: gagavatar_gpu::Tuning,
+    /// The reconstruct pass on `gpu` (weights uploaded once).
+    rec: Option<Arc<GpuReconstruct>>,
 }
 
 #[pymethods]
@@ -148,11 +151,19 @@ impl Engine {
             Some(g) => tuning.with_precision(gpu_precision, g).map_err(to_py)?,
             None => tuning,
         };
+        let rec = match &gpu {
+            Some(g) => Some(Arc::new(
+                py.detach(|| lined(inner.gpu_reconstruct(g.clone(), &tuning)))
+                    .map_err(bad)?,
+            )),
+            None => None,
+        };
         Ok(Engine {
             inner: Arc::new(inner),
             device,
             gpu,
             tuning,
+            rec,
         })
     }
 
@@ -372,25 +383,33 @@ impl Engine {
         record: TrackedFrame,
     ) -> PyResult<Avatar> {
         let engine = self.inner.clone();
-        let gpu = self.gpu.clone();
+        let gpu = self.gpu.clone().zip(self.rec.clone());
         let tuning = self.tuning.clone();
         py.detach(move || build_avatar(&engine, gpu, &tuning, &img, &record))
             .map_err(bad)
     }
 }
 
-/// Reconstructs an avatar and opens its drive (on `gpu` when given); errors as one line.
+/// Reconstructs an avatar and opens its drive (both on the GPU when given); errors as one
+/// line.
 fn build_avatar(
     engine: &CoreEngine,
-    gpu: Option<Arc<Gpu>>,
+    gpu: Option<(Arc<Gpu>, Arc<GpuReconstruct>)>,
     tuning: &gagavatar_gpu::Tuning,
     img: &image::RgbImage,
     record: &TrackedFrame,
 ) -> Result<Avatar, String> {
-    let avatar = lined(engine.avatar(img, record))?;
-    let drive = match gpu {
-        Some(g) => Drives::Gpu(Box::new(lined(avatar.gpu_drive(g, tuning))?)),
-        None => Drives::Cpu(Box::new(avatar.cpu_drive())),
+    let (avatar, drive) = match gpu {
+        Some((g, rec)) => {
+            let avatar = lined(engine.avatar_on_gpu(&rec, img, record))?;
+            let drive = Drives::Gpu(Box::new(lined(avatar.gpu_drive(g, tuning))?));
+            (avatar, drive)
+        }
+        None => {
+            let avatar = lined(engine.avatar(img, record))?;
+            let drive = Drives::Cpu(Box::new(avatar.cpu_drive()));
+            (avatar, drive)
+        }
     };
     Ok(Avatar {
         avatar,

@@ -14,6 +14,7 @@ use gagavatar_flame::TrackedFrame;
 use gagavatar_net::style_unet::Noise;
 use gagavatar_video::{VideoOptions, VideoWriter};
 
+use crate::device_args::DeviceArgs;
 use crate::tracking;
 
 /// The inputs every avatar command needs.
@@ -136,8 +137,8 @@ neural renderer {:.1} ms, video encoding {:.1} ms; {} frames, total wall {:.1} s
     }
 }
 
-/// A reconstructed avatar (sharing the engine's model and FLAME) and the drive that renders it (CPU, or a GPU after
-/// [`Session::use_device`]).
+/// A reconstructed avatar (sharing the engine's model and FLAME) and the drive that renders it
+/// (on the CPU or a GPU).
 pub struct Session {
     pub avatar: Avatar,
     drive: Box<dyn Drive>,
@@ -213,50 +214,64 @@ pub fn record_transform(record: &TrackedFrame, what: &str) -> Result<[[f64; 4]; 
 
 impl Session {
     /// Loads the engine, resolves the source (tracking a raw photo first) and reconstructs the
-    /// avatar.
-    pub fn open(a: &SourceArgs) -> Result<Self> {
+    /// avatar, on the GPU `device` asks for (and renders there) when one is found.
+    pub fn open(a: &SourceArgs, device: &DeviceArgs, what: &str) -> Result<Self> {
         let t0 = Instant::now();
         let engine = a.open_engine()?;
         let load = t0.elapsed();
         let src = resolve_source(a, &engine)?;
-        Self::with_source(&engine, src, load)
+        Self::with_source(&engine, src, load, device, what)
     }
 
     /// Reconstructs the avatar of an already resolved source; `load` is the engine's load time.
-    pub fn with_source(engine: &Engine, src: ResolvedSource, load: Duration) -> Result<Self> {
+    /// With a GPU (`device`), the network runs there and the Gaussians stay there for the
+    /// drive; `what` says in the device line what runs on it.
+    pub fn with_source(
+        engine: &Engine,
+        src: ResolvedSource,
+        load: Duration,
+        device: &DeviceArgs,
+        what: &str,
+    ) -> Result<Self> {
         let size = engine.image_size();
         let image = match src.image {
             SourceImage::File(path) => crate::cmd_model::read_rgb(&path, size)?,
             SourceImage::Crop(img) => img,
         };
-        let t1 = Instant::now();
-        let avatar = engine
-            .avatar(&image, &src.record)
-            .with_context(|| format!("source record {}", src.label))?;
-        let reconstruct = t1.elapsed();
-        let drive = Box::new(avatar.cpu_drive());
+        let context = || format!("source record {}", src.label);
+        let mut timings = Timings {
+            load,
+            ..Default::default()
+        };
+        let (avatar, drive): (Avatar, Box<dyn Drive>) = match device.open_for(what)? {
+            Some(gpu) => {
+                let t0 = Instant::now();
+                let tuning = device.tuning(&gpu)?;
+                let rec = engine.gpu_reconstruct(gpu.clone(), &tuning)?;
+                timings.load += t0.elapsed();
+                let t1 = Instant::now();
+                let avatar = engine
+                    .avatar_on_gpu(&rec, &image, &src.record)
+                    .with_context(context)?;
+                timings.reconstruct = t1.elapsed();
+                let t2 = Instant::now();
+                let drive = Box::new(avatar.gpu_drive(gpu, &tuning)?);
+                timings.load += t2.elapsed();
+                (avatar, drive)
+            }
+            None => {
+                let t1 = Instant::now();
+                let avatar = engine.avatar(&image, &src.record).with_context(context)?;
+                timings.reconstruct = t1.elapsed();
+                let drive = Box::new(avatar.cpu_drive());
+                (avatar, drive)
+            }
+        };
         Ok(Self {
             avatar,
             drive,
-            timings: Timings {
-                load,
-                reconstruct,
-                ..Default::default()
-            },
+            timings,
         })
-    }
-
-    /// Renders frames on a GPU from now on when `device` asks for one (and one is found):
-    /// uploads the avatar, FLAME and the renderer once.
-    pub fn use_device(&mut self, device: &crate::device_args::DeviceArgs) -> Result<()> {
-        let Some(gpu) = device.open()? else {
-            return Ok(());
-        };
-        let t0 = Instant::now();
-        let tuning = device.tuning(&gpu)?;
-        self.drive = Box::new(self.avatar.gpu_drive(gpu, &tuning)?);
-        self.timings.load += t0.elapsed();
-        Ok(())
     }
 
     /// The record the avatar was made from.

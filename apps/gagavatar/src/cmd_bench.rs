@@ -37,6 +37,14 @@ other kernel tile sizes (crates/gpu/README.md).\n\nExample:\n  gagavatar bench d
 gagavatar bench drive --device cpu --threads 2 --frames 10"
     )]
     Drive(crate::cmd_bench_drive::DriveBench),
+    /// `reconstruct` (photo + camera -> the avatar's Gaussians) on a GPU or the CPU: time per
+    /// stage (preprocessing, DINOv2, DPT, the generators), median over runs, GPU memory.
+    #[command(
+        after_help = "Seeded random weights of the preset unless --ckpt is given; a random \
+image unless --image.\n\nExample:\n  gagavatar bench reconstruct --device gpu --runs 20\n  \
+gagavatar bench reconstruct --device gpu --preset tiny --json rec.json"
+    )]
+    Reconstruct(crate::cmd_bench_reconstruct::ReconstructBench),
     /// Face perception: tracking-mode landmarks per video frame, detection, the 256x256 matte.
     #[command(
         after_help = "Frames are images (a folder of them, or files), used in order as a video. Each frame is\ncopied right before it is timed, as a decoder would have just written it.\n\nExample:\n  ffmpeg -i clip.mp4 frames/%04d.png\n  gagavatar bench face frames --threads 2 --runs 3"
@@ -201,6 +209,7 @@ pub fn run(cmd: BenchCmd) -> Result<()> {
         BenchCmd::Model(args) => bench_model(args),
         BenchCmd::Video(args) => bench_video(args),
         BenchCmd::Drive(args) => crate::cmd_bench_drive::bench_drive(args),
+        BenchCmd::Reconstruct(args) => crate::cmd_bench_reconstruct::bench_reconstruct(args),
         BenchCmd::Face(args) => bench_face(args),
         BenchCmd::Eval(args) => bench_eval(args),
         BenchCmd::Track(args) => bench_track(args),

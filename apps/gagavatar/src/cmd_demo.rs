@@ -84,6 +84,7 @@ fn steps(a: &DemoArgs, assets: &Path) -> (ReenactArgs, OrbitArgs, ExportPlyArgs)
         src: src(),
         output: a.output.join("avatar.ply"),
         expression: ExpressionArgs::default(),
+        device: a.device.device,
     };
     (reenact, orbit, ply)
 }

@@ -81,8 +81,7 @@ pub fn run_orbit(a: OrbitArgs) -> Result<()> {
     if !a.yaw.is_finite() || !a.pitch.is_finite() || a.yaw.abs() > 90.0 || a.pitch.abs() > 90.0 {
         bail!("--yaw and --pitch must be finite angles within +-90 degrees");
     }
-    let mut session = Session::open(&a.src)?;
-    session.use_device(&a.device)?;
+    let mut session = Session::open(&a.src, &a.device, "reconstructing and rendering")?;
     let expr = a.expression.record(session.source())?;
     let base = record_transform(session.source(), "the source record")?;
     let transforms = orbit_cameras(&base, a.yaw, a.pitch, a.frames);
@@ -126,10 +125,17 @@ pub struct ExportPlyArgs {
     pub output: PathBuf,
     #[command(flatten)]
     pub expression: ExpressionArgs,
+    /// Where the network runs: auto (a GPU if one is found, else the CPU), cpu or gpu.
+    #[arg(long, value_enum, default_value_t = crate::device_args::DeviceChoice::Auto)]
+    pub device: crate::device_args::DeviceChoice,
 }
 
 pub fn run_export_ply(a: ExportPlyArgs) -> Result<()> {
-    let session = Session::open(&a.src)?;
+    let device = crate::device_args::DeviceArgs {
+        device: a.device,
+        gpu_precision: crate::device_args::GpuPrecisionArg::F32,
+    };
+    let session = Session::open(&a.src, &device, "reconstructing")?;
     let expr = a.expression.record(session.source())?;
     let codes = session.avatar.codes(&expr, "the expression record")?;
     let scene = session.avatar.scene(&codes)?;

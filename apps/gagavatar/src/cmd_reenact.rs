@@ -162,8 +162,13 @@ pub fn run(a: ReenactArgs) -> Result<()> {
         )?);
     }
     let fps = a.fps.unwrap_or(driver.fps);
-    let mut session = Session::with_source(&engine, source, load)?;
-    session.use_device(&a.device)?;
+    let mut session = Session::with_source(
+        &engine,
+        source,
+        load,
+        &a.device,
+        "reconstructing and rendering",
+    )?;
     let size = session.image_size();
     let width = if show_driver { 2 * size } else { size };
     let jobs: Vec<FrameJob> = driver.frames[a.start..end]

@@ -46,12 +46,18 @@ pub struct DeviceArgs {
 impl DeviceArgs {
     /// The GPU to drive frames on, or `None` for the CPU path. Prints one line saying which.
     pub fn open(&self) -> Result<Option<Arc<Gpu>>> {
+        self.open_for("rendering")
+    }
+
+    /// [`DeviceArgs::open`], the line saying `what` runs there ("rendering", "reconstructing
+    /// and rendering", ...).
+    pub fn open_for(&self, what: &str) -> Result<Option<Arc<Gpu>>> {
         let gpu = match self.device {
             DeviceChoice::Cpu => return Ok(None),
             DeviceChoice::Auto => match Gpu::new(AdapterPolicy::RealOnly) {
                 Ok(g) => g,
                 Err(e) => {
-                    eprintln!("{e}; rendering on the CPU");
+                    eprintln!("{e}; {what} on the CPU");
                     return Ok(None);
                 }
             },
@@ -68,12 +74,12 @@ impl DeviceArgs {
         };
         if gpu.is_cpu() {
             eprintln!(
-                "rendering on {} ({convs}), a CPU-emulated GPU: expect it to be slower than \
+                "{what} on {} ({convs}), a CPU-emulated GPU: expect it to be slower than \
                  --device cpu",
                 gpu.describe()
             );
         } else {
-            eprintln!("rendering on the GPU: {} ({convs})", gpu.describe());
+            eprintln!("{what} on the GPU: {} ({convs})", gpu.describe());
         }
         Ok(Some(Arc::new(gpu)))
     }

@@ -200,6 +200,84 @@ fn reenact_and_orbit_on_the_gpu_match_the_cpu() {
     }
 }
 
+/// A `.ply` export's header and its values (all f32 properties) after the header.
+fn ply_values(path: &Path) -> (String, Vec<f32>) {
+    let bytes = std::fs::read(path).unwrap();
+    let end = b"end_header\n";
+    let at = bytes
+        .windows(end.len())
+        .position(|w| w == end)
+        .expect("a ply header")
+        + end.len();
+    let header = String::from_utf8_lossy(&bytes[..at]).into_owned();
+    assert!(
+        header
+            .lines()
+            .filter(|l| l.starts_with("property"))
+            .all(|l| l.starts_with("property float ")),
+        "every property is f32:\n{header}"
+    );
+    (header, bytemuck_f32(&bytes[at..]))
+}
+
+fn bytemuck_f32(b: &[u8]) -> Vec<f32> {
+    b.chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
+
+/// Values of a `.ply` from the GPU's reconstruct against the CPU's: the Gaussians agree to
+/// 1e-4 of each attribute's range (reconstruct's own test); the export's logit and log
+/// transforms can stretch that where an opacity is near 0 or 1.
+const PLY_TOL: f64 = 2e-3;
+
+/// `export-ply --device gpu` reconstructs on the GPU (lavapipe here) and writes the Gaussians
+/// the CPU's reconstruct writes.
+#[test]
+fn export_ply_on_the_gpu_matches_the_cpu() {
+    let f = fixture();
+    let mut files = Vec::new();
+    for device in ["cpu", "gpu"] {
+        let path = f.s(&format!("avatar_{device}.ply"));
+        let args = avatar_cmd(f, "export-ply", &["--device", device, "-o", &path]);
+        let out = run(&strs(&args), &[]);
+        if device == "gpu" && !have_gpu(&out) {
+            return;
+        }
+        assert!(
+            out.status.success(),
+            "export-ply --device {device}:\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        if device == "gpu" {
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert!(
+                err.contains("reconstructing on"),
+                "no device line in\n{err}"
+            );
+        }
+        files.push(path);
+    }
+    let (ha, a) = ply_values(Path::new(&files[0]));
+    let (hb, b) = ply_values(Path::new(&files[1]));
+    assert_eq!(ha, hb, "headers");
+    assert_eq!(a.len(), b.len());
+    let (mut worst, mut at) = (0f64, 0);
+    for (i, (x, y)) in a.iter().zip(&b).enumerate() {
+        let d = (*x as f64 - *y as f64).abs() / (1.0 + (*x as f64).abs());
+        if d > worst || d.is_nan() {
+            worst = if d.is_nan() { f64::INFINITY } else { d };
+            at = i;
+        }
+    }
+    assert!(
+        worst <= PLY_TOL,
+        "value {at}: cpu {}, gpu {} (relative {worst:e} > {PLY_TOL:e})",
+        a[at],
+        b[at]
+    );
+}
+
 #[test]
 fn bench_drive_reports_stages_on_both_devices() {
     let out = run(

@@ -6,6 +6,7 @@ use std::sync::Arc;
 use candle_core::{DType, Device, Tensor};
 use gagavatar_flame::{FlameIdentity, FlameModel, TrackedFrame};
 use gagavatar_gpu::flame::FrameCodes;
+use gagavatar_gpu::reconstruct::GpuAvatar;
 use gagavatar_gpu::Gpu;
 use gagavatar_net::model::{Avatar as Gaussians, GagAvatar};
 use gagavatar_net::style_unet::Noise;
@@ -23,6 +24,8 @@ pub struct Avatar {
     pub(crate) identity: FlameIdentity,
     pub(crate) source: TrackedFrame,
     pub(crate) noise: Noise,
+    /// The Gaussians where [`crate::Engine::avatar_on_gpu`] made them, on that device.
+    pub(crate) on_gpu: Option<(Arc<Gpu>, Arc<GpuAvatar>)>,
 }
 
 impl Avatar {
@@ -41,7 +44,14 @@ impl Avatar {
             identity,
             source,
             noise,
+            on_gpu: None,
         }
+    }
+
+    /// Whether the Gaussians were made on a GPU (and a GPU drive on that device reads them
+    /// there).
+    pub fn is_on_gpu(&self) -> bool {
+        self.on_gpu.is_some()
     }
 
     /// The tracked record the avatar was made from (its identity and its camera).
@@ -153,8 +163,22 @@ impl Avatar {
         )
     }
 
-    /// The avatar's drive on `gpu`: uploads the Gaussians, FLAME and the renderer once.
+    /// The avatar's drive on `gpu`: uploads FLAME and the renderer once, and the Gaussians
+    /// unless they were made on this device.
     pub fn gpu_drive(&self, gpu: Arc<Gpu>, tuning: &gagavatar_gpu::Tuning) -> Result<GpuDrive> {
+        if let Some((made_on, avatar)) = &self.on_gpu {
+            if Arc::ptr_eq(made_on, &gpu) {
+                return GpuDrive::from_gpu_avatar(
+                    gpu,
+                    tuning,
+                    &self.model,
+                    avatar,
+                    &self.flame,
+                    &self.identity,
+                    self.noise,
+                );
+            }
+        }
         GpuDrive::from_parts(
             gpu,
             tuning,

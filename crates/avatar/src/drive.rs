@@ -193,6 +193,32 @@ impl GpuDrive {
         })
     }
 
+    /// [`GpuDrive::from_parts`] for Gaussians already on `gpu` (made there by reconstruct).
+    pub fn from_gpu_avatar(
+        gpu: Arc<Gpu>,
+        tuning: &gagavatar_gpu::Tuning,
+        model: &gagavatar_net::model::GagAvatar,
+        avatar: &gagavatar_gpu::reconstruct::GpuAvatar,
+        flame: &FlameModel,
+        identity: &FlameIdentity,
+        noise: Noise,
+    ) -> Result<Self> {
+        let inner = gagavatar_gpu::drive::GpuDrive::from_gpu_avatar(
+            gpu,
+            tuning,
+            &model.cfg,
+            &model.renderer,
+            avatar,
+            flame,
+            identity,
+            noise,
+        )?;
+        Ok(GpuDrive {
+            inner,
+            times: DriveTimes::default(),
+        })
+    }
+
     /// The device drive itself (stage profiles, kernel tuning).
     pub fn device_drive(&mut self) -> &mut gagavatar_gpu::drive::GpuDrive {
         &mut self.inner

@@ -5,7 +5,10 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
 use candle_core::{DType, Device, Tensor};
-use gagavatar_flame::{BasisLayout, FlameAsset, FlameModel, LoadOptions, TrackedFrame};
+use gagavatar_flame::{
+    BasisLayout, FlameAsset, FlameIdentity, FlameModel, LoadOptions, TrackedFrame,
+};
+use gagavatar_gpu::reconstruct::GpuReconstruct;
 use gagavatar_net::checkpoint;
 use gagavatar_net::model::GagAvatar;
 use gagavatar_net::style_unet::Noise;
@@ -220,8 +223,48 @@ impl Engine {
         self.avatar_from_tensor(&t, record)
     }
 
-    /// [`Engine::avatar`] from an image tensor `[1, 3, S, S]` in [0, 1].
-    pub fn avatar_from_tensor(&self, image: &Tensor, record: &TrackedFrame) -> Result<Avatar> {
+    /// The GPU half of [`Engine::avatar_on_gpu`]: the reconstruct pass with this engine's
+    /// weights uploaded to `gpu` (once; keep it for every source photo).
+    pub fn gpu_reconstruct(
+        &self,
+        gpu: Arc<gagavatar_gpu::Gpu>,
+        tuning: &gagavatar_gpu::Tuning,
+    ) -> Result<GpuReconstruct> {
+        Ok(GpuReconstruct::new(gpu, tuning, &self.model)?)
+    }
+
+    /// [`Engine::avatar`] with the network run on the GPU of `rec` (from
+    /// [`Engine::gpu_reconstruct`]): the Gaussians stay there for a GPU drive on that device
+    /// (a copy is also read back for the CPU's uses: `.ply` export, the CPU drive).
+    pub fn avatar_on_gpu(
+        &self,
+        rec: &GpuReconstruct,
+        image: &image::RgbImage,
+        record: &TrackedFrame,
+    ) -> Result<Avatar> {
+        let t = image_tensor(image, self.image_size())?;
+        let (transform, identity) = self.source_parts(&t, record)?;
+        let on_gpu = Arc::new(rec.run_owned(&t, &transforms_tensor(&[transform])?)?);
+        let gpu = rec.gpu_arc();
+        let gaussians = on_gpu.download(&gpu)?;
+        let mut avatar = Avatar::new(
+            self.model.clone(),
+            self.flame.clone(),
+            gaussians,
+            identity,
+            record.clone(),
+            self.noise,
+        );
+        avatar.on_gpu = Some((gpu, on_gpu));
+        Ok(avatar)
+    }
+
+    /// The source's camera and FLAME identity, with the image's shape checked.
+    fn source_parts(
+        &self,
+        image: &Tensor,
+        record: &TrackedFrame,
+    ) -> Result<([[f64; 4]; 3], FlameIdentity)> {
         let size = self.image_size();
         if image.dims() != [1, 3, size, size] {
             return Err(input_err(
@@ -233,7 +276,12 @@ impl Engine {
             .transform_matrix
             .ok_or_else(|| input_err("the source record", "no transform_matrix"))?;
         let shape = record.params(&self.flame)?.shape;
-        let identity = self.flame.identity(&shape)?;
+        Ok((transform, self.flame.identity(&shape)?))
+    }
+
+    /// [`Engine::avatar`] from an image tensor `[1, 3, S, S]` in [0, 1].
+    pub fn avatar_from_tensor(&self, image: &Tensor, record: &TrackedFrame) -> Result<Avatar> {
+        let (transform, identity) = self.source_parts(image, record)?;
         let gaussians = self
             .model
             .reconstruct(image, &transforms_tensor(&[transform])?)?;

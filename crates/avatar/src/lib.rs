@@ -45,6 +45,7 @@ pub use engine::{
 };
 pub use error::{one_line, AvatarError, Result};
 pub use gagavatar_gpu::flame::FrameCodes;
+pub use gagavatar_gpu::reconstruct::GpuReconstruct;
 pub use gagavatar_ops::Precision;
 pub use many::render_many;
 pub use monitor::{CancelToken, Monitor, NoMonitor};

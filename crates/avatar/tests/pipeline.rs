@@ -173,6 +173,64 @@ fn the_gpu_drive_renders_what_the_cpu_drive_renders() {
     assert!(dev.times().gpu > std::time::Duration::ZERO);
 }
 
+/// `Engine::avatar_on_gpu`: the network on the GPU, the Gaussians kept there for the GPU drive
+/// (and read back for the CPU's uses), on the real demo photo. Two avatars made one after the
+/// other keep their own Gaussians (the pass's buffers are reused).
+#[test]
+fn an_avatar_made_on_the_gpu_renders_what_the_cpu_one_renders() {
+    let gpu = match gagavatar_gpu::Gpu::new(gagavatar_gpu::AdapterPolicy::AllowCpu) {
+        Ok(g) => std::sync::Arc::new(g),
+        Err(e) => {
+            gagavatar_testkit::optional_path(
+                "an_avatar_made_on_the_gpu_renders_what_the_cpu_one_renders",
+                false,
+                &format!("no GPU device: {e}"),
+                gagavatar_testkit::REQUIRE_GPU,
+            );
+            return;
+        }
+    };
+    let e = engine();
+    let (img, rec) = source();
+    let tuning = gagavatar_gpu::Tuning::default();
+    let pass = e.gpu_reconstruct(gpu.clone(), &tuning).unwrap();
+    let on_gpu = e.avatar_on_gpu(&pass, &img, &rec).unwrap();
+    assert!(on_gpu.is_on_gpu());
+    let mirrored = image::imageops::flip_horizontal(&img);
+    let other = e.avatar_on_gpu(&pass, &mirrored, &rec).unwrap();
+    let on_cpu = e.avatar(&img, &rec).unwrap();
+    assert!(!on_cpu.is_on_gpu());
+    let base = on_cpu.codes(&rec, "source").unwrap();
+    let cam = on_cpu.source_camera().unwrap();
+    let frames = vec![(base.clone(), cam), (codes(&base, 1.5, 0.1), cam)];
+    let want = on_cpu.cpu_drive().render_batch(&frames).unwrap();
+    let mut dev = on_gpu.gpu_drive(gpu.clone(), &tuning).unwrap();
+    let got = dev.render_batch(&frames).unwrap();
+    let mut read_back = on_gpu.cpu_drive();
+    let cpu_of_gpu = read_back.render_batch(&frames).unwrap();
+    for (i, ((w, g), r)) in want.iter().zip(&got).zip(&cpu_of_gpu).enumerate() {
+        let d = max_level_diff(w, g);
+        assert!(
+            d <= GPU_LEVELS,
+            "frame {i}: CPU avatar vs GPU avatar differ by {d} levels"
+        );
+        let d = max_level_diff(w, r);
+        assert!(
+            d <= GPU_LEVELS,
+            "frame {i}: the read-back Gaussians differ by {d} levels"
+        );
+    }
+    let mirrored_frame = other
+        .gpu_drive(gpu, &tuning)
+        .unwrap()
+        .render(&base, &cam)
+        .unwrap();
+    assert!(
+        max_level_diff(&mirrored_frame, &got[0]) > 8,
+        "the second avatar overwrote the first or rendered the first"
+    );
+}
+
 #[test]
 fn several_avatars_render_in_one_batch_as_each_alone() {
     let e = engine();
