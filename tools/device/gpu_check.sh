@@ -1,7 +1,8 @@
 #!/bin/bash
 # The GPU check of issues 30/31, in one device call (see tools/device/README.md):
 # adapter facts, the GPU parity tests on a real driver (release size included, their measured
-# maxima printed), `bench drive` at release size for both Gaussian regimes, and a sweep of
+# maxima printed), `bench drive` at release size for both Gaussian regimes, `bench
+# reconstruct` (f16 and f32), `reenact` end to end (reconstruct on the GPU too), and a sweep of
 # convolution tilings (GAGAVATAR_GPU_TUNE, no rebuild), everything written to $OUT: a
 # summary.txt to read, one JSON per bench run (bench_*.json) and check.json gathering them.
 #
@@ -9,7 +10,8 @@
 # debs in .gl/); run there with carry [".gl", ".dev"]:
 #   bash tools/device/gpu_check.sh
 set -u
-# FRAMES, SWEEP_FRAMES, REENACT_FRAMES, PRESET and TESTS (a test-name filter) shrink the run for
+# FRAMES, SWEEP_FRAMES, REENACT_FRAMES, RECONSTRUCT_RUNS, PRESET and TESTS (a test-name filter)
+# shrink the run for
 # a dry run on lavapipe; SKIP_TESTS=1 leaves the parity tests out.
 FRAMES=${FRAMES:-300}
 SWEEP_FRAMES=${SWEEP_FRAMES:-40}
@@ -67,6 +69,15 @@ for run in small large f16; do
         --dispatches > "$OUT/bench_drive_$run.txt" 2>&1
     echo "exit $? ($run)" >> "$OUT/summary.txt"
     tail -33 "$OUT/bench_drive_$run.txt" >> "$OUT/summary.txt"
+done
+
+log "bench reconstruct, $PRESET seeded weights, ${RECONSTRUCT_RUNS:-20} runs: f16 tensor cores, then f32"
+for precision in f16 f32; do
+    timeout 120 "$BIN/gagavatar" bench reconstruct --device gpu --gpu-precision "$precision" \
+        --preset "$PRESET" --runs "${RECONSTRUCT_RUNS:-20}" \
+        --json "$OUT/bench_reconstruct_$precision.json" > "$OUT/bench_reconstruct_$precision.txt" 2>&1
+    echo "exit $? (reconstruct, $precision)" >> "$OUT/summary.txt"
+    tail -10 "$OUT/bench_reconstruct_$precision.txt" >> "$OUT/summary.txt"
 done
 
 log "reenact end to end, $PRESET seeded weights, ${REENACT_FRAMES:-354} frames (records cached: no tracking), f16 then f32"
