@@ -1,11 +1,11 @@
 //! `reconstruct` on the GPU (spec section 1, phase 1): the source photo and its camera in, the
 //! avatar's Gaussians out, written straight into the buffers the drive's splatting reads.
 //!
-//! What runs where: the photo's preprocessing (the antialiased resizes to the ViT's input and
-//! to DPT's four level sizes, the ImageNet normalisation) and the camera's point plane and
-//! direction encoding (a few hundred values) are computed on the CPU and uploaded; every
-//! network layer runs on the GPU: DINOv2 ([`dino`]), the DPT head ([`dpt`]) and the three
-//! Gaussian generators ([`generators`]). The ViT keeps its tokens as the columns of
+//! What runs where: the photo is uploaded as it is and resized on the GPU (the antialiased
+//! resizes to the ViT's input and to DPT's four level sizes with the CPU path's own tap tables,
+//! the ImageNet normalisation); the camera's point plane and direction encoding (S^2 x 3 + 30
+//! values) are computed on the CPU and uploaded; every network layer runs on the GPU: DINOv2
+//! ([`dino`]), the DPT head ([`dpt`]) and the three Gaussian generators ([`generators`]). The ViT keeps its tokens as the columns of
 //! channel-major activations, so its linear layers are the renderer's 1x1 convolution kernel
 //! (tensor cores included) with LayerScale and the residual in the epilogue.
 
@@ -34,18 +34,18 @@ use crate::tuning::Tuning;
 use parts::{Ctx, Loader};
 
 /// Names of the stages [`GpuReconstruct::profile`] times, in order.
-pub const STAGES: [&str; 5] = [
-    "preprocess + upload (CPU)",
+pub const STAGES: [&str; 6] = [
+    "upload (photo, camera plane)",
+    "preprocess (resizes)",
     "dino",
     "dpt head",
     "gs_generator_g",
     "gs_generator_l0 + l1",
 ];
 
-/// The inputs computed on the CPU for one photo.
+/// The inputs of one photo as they are uploaded.
 struct HostInputs {
-    image: Vec<f32>,
-    levels: Vec<Vec<f32>>,
+    photo: Vec<f32>,
     plane: Vec<f32>,
     encoding: Vec<f32>,
 }
@@ -63,10 +63,8 @@ fn host(t: &Tensor, what: &str) -> Result<Vec<f32>> {
 pub struct GpuReconstruct {
     gpu: Arc<Gpu>,
     cfg: ModelConfig,
-    /// `[3, D, D]`, the ViT's input.
-    image: wgpu::Buffer,
-    /// DPT's level inputs `[3 + c_k, s_k, s_k]`: the photo at the level's size first.
-    levels: [wgpu::Buffer; 4],
+    /// `[3, S, S]`, the photo in [0, 1].
+    photo: wgpu::Buffer,
     /// The plane's points `[S S, 3]` then the view direction `[3]`.
     plane: wgpu::Buffer,
     /// The direction encoding `[DIR_ENCODING_DIM]`.
@@ -117,7 +115,17 @@ impl GpuReconstruct {
         let spare = g.buffer("unused (written)", 16);
 
         let d = cfg.dino_size;
+        let size = cfg.image_size;
+        let photo = g.buffer("photo", 4 * (3 * size * size) as u64);
         let image = g.buffer("dino input", 4 * (3 * d * d) as u64);
+        let level_sizes = [0, 1, 2, 3].map(|k| cfg.dpt_level_size(k));
+        let mut resizes = vec![(size, d)];
+        resizes.extend(level_sizes.map(|s| (d, s)));
+        let taps = ops::TapTables::new(g, &resizes, gagavatar_ops::ResizeMode::Antialias);
+        let normalize: ops::Normalize = (
+            gagavatar_net::dino::IMAGENET_MEAN.map(|m| m as f32),
+            gagavatar_net::dino::IMAGENET_STD.map(|s| (1.0 / s) as f32),
+        );
         let dino = dino::GpuDino::new(g, cfg);
         let dpt = dpt::GpuDpt::new(g, cfg);
         let s = cfg.plane_size();
@@ -136,6 +144,25 @@ impl GpuReconstruct {
                 scratch,
                 measure,
             };
+            let o = ctx.ops();
+            let mut pre = vec![o.resize_taps(
+                &taps,
+                0,
+                (3, size, d),
+                Some(normalize),
+                parts::At::new(&photo),
+                parts::At::new(&image),
+            )?];
+            for (k, &s) in level_sizes.iter().enumerate() {
+                pre.push(o.resize_taps(
+                    &taps,
+                    k + 1,
+                    (3, d, s),
+                    None,
+                    parts::At::new(&image),
+                    parts::At::new(&dpt.levels[k]),
+                )?);
+            }
             let dino_steps = dino.record(&ctx, &dino_w, &image)?;
             let dpt_steps = dpt.record(&ctx, &dpt_w, &dino.outs)?;
             let [gs, ls] = gens.record(
@@ -146,18 +173,16 @@ impl GpuReconstruct {
                 (&plane, &encoding),
                 &avatar,
             )?;
-            Ok::<_, GpuError>(vec![dino_steps, dpt_steps, gs, ls])
+            Ok::<_, GpuError>(vec![pre, dino_steps, dpt_steps, gs, ls])
         };
         let need = Cell::new(0);
         record(&dummy, Some(&need))?;
         let scratch = g.buffer("split-K partial sums", 4 * need.get().max(1) as u64);
         let stages = record(&scratch, None)?;
-        let levels = dpt.levels.clone();
         Ok(Self {
             gpu: gpu.clone(),
             cfg: cfg.clone(),
-            image,
-            levels,
+            photo,
             plane,
             encoding,
             stages,
@@ -165,7 +190,15 @@ impl GpuReconstruct {
             dpt,
             avatar,
             lock: std::sync::Mutex::new(()),
-            _keep: vec![vecs, dummy, spare, scratch],
+            _keep: vec![
+                vecs,
+                dummy,
+                spare,
+                scratch,
+                image,
+                taps.starts,
+                taps.weights,
+            ],
         })
     }
 
@@ -211,25 +244,14 @@ impl GpuReconstruct {
             ));
         }
         let cpu = |e: candle_core::Error| input_err("source", e.to_string());
-        let image = image.to_dtype(DType::F32).map_err(cpu)?;
         let transform = transform.to_dtype(DType::F32).map_err(cpu)?;
-        let input = gagavatar_net::dino::preprocess(&image, &self.cfg).map_err(cpu)?;
-        let levels = (0..4)
-            .map(|k| {
-                let s = self.cfg.dpt_level_size(k);
-                gagavatar_ops::resize(&input, s, s, gagavatar_ops::ResizeMode::Antialias)
-                    .map_err(cpu)
-                    .and_then(|t| host(&t, "level image"))
-            })
-            .collect::<Result<Vec<_>>>()?;
         let s = self.cfg.plane_size();
         let (points, dir) = gagavatar_net::plane::point_plane(&transform, s, FOCAL).map_err(cpu)?;
         let enc = gagavatar_net::plane::dir_encoding(&dir).map_err(cpu)?;
         let mut plane = host(&points, "plane")?;
         plane.extend(host(&dir, "view direction")?);
         Ok(HostInputs {
-            image: host(&input, "dino input")?,
-            levels,
+            photo: img,
             plane,
             encoding: host(&enc, "direction encoding")?,
         })
@@ -237,10 +259,7 @@ impl GpuReconstruct {
 
     fn upload(&self, inputs: &HostInputs) {
         let q = &self.gpu.queue;
-        q.write_buffer(&self.image, 0, bytemuck::cast_slice(&inputs.image));
-        for (buf, v) in self.levels.iter().zip(&inputs.levels) {
-            q.write_buffer(buf, 0, bytemuck::cast_slice(v));
-        }
+        q.write_buffer(&self.photo, 0, bytemuck::cast_slice(&inputs.photo));
         q.write_buffer(&self.plane, 0, bytemuck::cast_slice(&inputs.plane));
         q.write_buffer(&self.encoding, 0, bytemuck::cast_slice(&inputs.encoding));
     }
@@ -290,9 +309,9 @@ impl GpuReconstruct {
 
     /// [`GpuReconstruct::run`] with each of [`STAGES`] submitted and waited for alone:
     /// milliseconds of wall time per stage (a stage's time includes one submission).
-    pub fn profile(&self, image: &Tensor, transform: &Tensor) -> Result<[f64; 5]> {
+    pub fn profile(&self, image: &Tensor, transform: &Tensor) -> Result<[f64; 6]> {
         let _guard = self.locked();
-        let mut ms = [0f64; 5];
+        let mut ms = [0f64; 6];
         let t0 = Instant::now();
         let inputs = self.host_inputs(image, transform)?;
         self.upload(&inputs);

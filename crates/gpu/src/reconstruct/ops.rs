@@ -15,6 +15,39 @@ const RESIZE_AC: &str = include_str!("../shaders/resize_ac.wgsl");
 const ROWS: &str = include_str!("../shaders/rows.wgsl");
 const GAUSSIANS: &str = include_str!("../shaders/gaussians.wgsl");
 const ROTATIONS_ACROSS: &str = include_str!("../shaders/rotations_across.wgsl");
+const RESIZE_TAPS: &str = include_str!("../shaders/resize_taps.wgsl");
+
+/// Tap tables of resizes (the CPU path's `Taps`) in two buffers, and where each one is.
+pub struct TapTables {
+    pub starts: wgpu::Buffer,
+    pub weights: wgpu::Buffer,
+    /// Per resize: (rows: start offset, weight offset, taps), (columns: the same).
+    pub at: Vec<[(u32, u32, u32); 2]>,
+}
+
+impl TapTables {
+    /// Tables for resizing `[in, in]` to `[out, out]` for each `(in, out)`, with `mode`.
+    pub fn new(
+        gpu: &crate::Gpu,
+        sizes: &[(usize, usize)],
+        mode: gagavatar_ops::ResizeMode,
+    ) -> Self {
+        let (mut starts, mut weights, mut at) = (Vec::<u32>::new(), Vec::<f32>::new(), Vec::new());
+        for &(input, output) in sizes {
+            let t = gagavatar_ops::resample::Taps::new(input, output, mode);
+            let axis = (starts.len() as u32, weights.len() as u32, t.n as u32);
+            starts.extend(t.start.iter().map(|&s| s as u32));
+            weights.extend(t.w.iter().map(|&w| w as f32));
+            // Square images: the same table serves rows and columns.
+            at.push([axis, axis]);
+        }
+        Self {
+            starts: gpu.buffer_with("resize starts", &starts),
+            weights: gpu.buffer_with("resize weights", &weights),
+            at,
+        }
+    }
+}
 
 /// Keys per tile of the attention kernel: two tiles of `KT x D` f32 fill 16 KiB of workgroup
 /// memory at D = 64 (WebGPU's guaranteed minimum).
@@ -61,6 +94,9 @@ fn attention_consts(d: usize) -> Vec<(&'static str, String)> {
 fn flag(b: bool) -> String {
     if b { "true" } else { "false" }.to_string()
 }
+
+/// The ImageNet normalisation applied after a resize: per channel mean and 1/std.
+pub type Normalize = ([f32; 3], [f32; 3]);
 
 /// A LayerNorm's shape: `n` tokens of `c` channels, read every `in_stride` and written every
 /// `out_stride` values per channel.
@@ -373,6 +409,59 @@ impl Ops<'_> {
         let g = self.gpu.bind(&k, &[&u, raw.buf, rotations])?;
         Ok(Step::new(k, g, Grid::Fixed([1, 1, 1])))
     }
+
+    /// `[c, h, h]` -> `[c, oh, oh]` through resize `k` of `tables`, optionally normalised.
+    #[allow(clippy::too_many_arguments)]
+    pub fn resize_taps(
+        &self,
+        tables: &TapTables,
+        k: usize,
+        (c, h, oh): (usize, usize, usize),
+        normalize: Option<Normalize>,
+        input: At,
+        out: At,
+    ) -> Result<Step> {
+        let [(sy, wy, ny), (sx, wx, nx)] = tables.at[k];
+        let kern = self.gpu.kernel(
+            "resize_taps",
+            RESIZE_TAPS,
+            &[("NORMALIZE", flag(normalize.is_some()))],
+            &[
+                Bind::Uniform,
+                Bind::Read,
+                Bind::Read,
+                Bind::Read,
+                Bind::ReadWrite,
+            ],
+        )?;
+        let (mean, inv) = normalize.unwrap_or(([0.0; 3], [1.0; 3]));
+        let mut p = Params::new()
+            .u(c as u32)
+            .u(h as u32)
+            .u(h as u32)
+            .u(oh as u32)
+            .u(oh as u32)
+            .u(ny)
+            .u(nx)
+            .u(sy)
+            .u(sx)
+            .u(wy)
+            .u(wx)
+            .u(input.off)
+            .u(out.off)
+            .u(0)
+            .u(0)
+            .u(0);
+        for v in mean.iter().chain(&[0.0]).chain(&inv).chain(&[1.0]) {
+            p = p.f(*v);
+        }
+        let u = self.gpu.uniform("resize taps", &p);
+        let g = self.gpu.bind(
+            &kern,
+            &[&u, input.buf, &tables.starts, &tables.weights, out.buf],
+        )?;
+        Ok(Step::new(kern, g, linear_grid(c * oh * oh, 256)).with_note(format!("{h} -> {oh}")))
+    }
 }
 
 #[cfg(test)]
@@ -464,4 +553,54 @@ mod tests {
             );
         }
     }
+
+    /// The photo's resizes against the CPU path's `resize` (and normalisation): enlarging,
+    /// shrinking by a little and by a lot (wide antialias windows), at offsets.
+    #[test]
+    fn resize_taps_match_the_cpu_resize() {
+        use candle_core::{Device, Tensor};
+        use gagavatar_ops::{resize, ResizeMode};
+        let Some(g) = gpu() else { return };
+        let t = crate::Tuning::default();
+        let spare = g.buffer("spare", 16);
+        let ops = ops(g, &t, &spare);
+        let mut rng = Rng::new(5);
+        let sizes = [(64, 70), (70, 20), (70, 5), (70, 70), (518, 19)];
+        let tables = TapTables::new(g, &sizes, ResizeMode::Antialias);
+        let norm: Normalize = ([0.4, 0.5, 0.6], [4.0, 4.5, 5.0]);
+        for (k, &(h, oh)) in sizes.iter().enumerate() {
+            let x: Vec<f32> = (0..3 * h * h).map(|_| rng.uniform() as f32).collect();
+            let xt = Tensor::from_vec(x.clone(), (1, 3, h, h), &Device::Cpu).unwrap();
+            let r = resize(&xt, oh, oh, ResizeMode::Antialias).unwrap();
+            let plain: Vec<f32> = r.flatten_all().unwrap().to_vec1().unwrap();
+            let normed: Vec<f32> = plain
+                .iter()
+                .enumerate()
+                .map(|(i, v)| {
+                    let c = i / (oh * oh);
+                    (v - norm.0[c]) * norm.1[c]
+                })
+                .collect();
+            let mut padded = vec![0f32; 5];
+            padded.extend(&x);
+            let xb = g.buffer_with("x", &padded);
+            for (what, n, want) in [("plain", None, &plain), ("normalised", Some(norm), &normed)] {
+                let out = g.buffer("y", 4 * (1 + 3 * oh * oh) as u64);
+                let step = ops
+                    .resize_taps(&tables, k, (3, h, oh), n, At::off(&xb, 5), At::off(&out, 1))
+                    .unwrap();
+                run(g, &[step]);
+                let got = g.read_f32(&out, 1 + 3 * oh * oh).unwrap();
+                assert_close(
+                    &format!("resize {h} -> {oh}, {what}"),
+                    want,
+                    &got[1..],
+                    RESIZE_TOL,
+                );
+            }
+        }
+    }
+
+    /// Sums of up to ~30 x 30 weighted values in another order than the CPU's separable passes.
+    const RESIZE_TOL: f64 = 1e-5;
 }

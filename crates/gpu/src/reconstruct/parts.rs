@@ -8,7 +8,8 @@ use candle_core::{DType, Tensor};
 use gagavatar_net::model::Avatar;
 use gagavatar_net::ModelConfig;
 
-use crate::conv::{Act, At, Conv, Ops};
+pub use crate::conv::At;
+use crate::conv::{Act, Conv, Ops};
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
 use crate::kernel::Step;
