@@ -108,7 +108,12 @@ fn compare(model: &GagAvatar, tuning: &Tuning, seed: u64, label: &str, tols: Tol
     let cfg = &model.cfg;
     let (img, tm) = photo(cfg, seed);
     let (want, trace) = model.reconstruct_traced(&img, &tm).unwrap();
+    let before = g.allocated_bytes();
     let rec = GpuReconstruct::new(g.clone(), tuning, model).unwrap();
+    eprintln!(
+        "{label}: GPU buffers of the pass (weights, activations, the avatar): {:.0} MiB",
+        (g.allocated_bytes() - before) as f64 / (1 << 20) as f64
+    );
     let got = rec.reconstruct(&img, &tm).unwrap();
     let outs = rec.dino.download(&g).unwrap();
     for (k, (t, o)) in trace.dino.iter().zip(&outs).enumerate() {
