@@ -111,7 +111,8 @@ fn compare(model: &GagAvatar, tuning: &Tuning, seed: u64, label: &str, tols: Tol
     let before = g.allocated_bytes();
     let rec = GpuReconstruct::new(g.clone(), tuning, model).unwrap();
     eprintln!(
-        "{label}: GPU buffers of the pass (weights, activations, the avatar): {:.0} MiB",
+        "{label}: GPU buffers of the pass (weights, activations, the avatar; tests running \
+         beside it on the same device add theirs): {:.0} MiB",
         (g.allocated_bytes() - before) as f64 / (1 << 20) as f64
     );
     let got = rec.reconstruct(&img, &tm).unwrap();
