@@ -77,6 +77,42 @@ pub struct Conv<'a> {
     pub out: At<'a>,
 }
 
+/// A convolution's (or linear layer's, `k` = 1) weight on the GPU, `[cout, cin k k]`, and its
+/// bias's offset in the vector buffer.
+pub struct ConvWeights {
+    pub weight: wgpu::Buffer,
+    pub bias: Option<u32>,
+    pub cin: usize,
+    pub cout: usize,
+    pub k: usize,
+}
+
+impl<'a> Conv<'a> {
+    /// `w` over `[cin, h, wd]` with its bias and nothing else in the epilogue (set the other
+    /// fields with `Conv { act: .., ..Conv::plain(..) }`).
+    pub fn plain(w: &'a ConvWeights, (h, wd): (usize, usize), input: At<'a>, out: At<'a>) -> Self {
+        Conv {
+            cin: w.cin,
+            cout: w.cout,
+            h,
+            w: wd,
+            k: w.k,
+            input,
+            weight: &w.weight,
+            bias: w.bias,
+            in_scale: None,
+            out_scale: None,
+            noise: None,
+            in_relu: false,
+            act: Act::None,
+            residual: None,
+            sft: None,
+            sigmoid: false,
+            out,
+        }
+    }
+}
+
 /// The activation of a convolution's epilogue.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub enum Act {

@@ -44,10 +44,7 @@ pub struct StageTimes {
 }
 
 fn host(t: &Tensor, what: &str) -> Result<Vec<f32>> {
-    t.to_dtype(DType::F32)
-        .and_then(|t| t.flatten_all())
-        .and_then(|t| t.to_vec1::<f32>())
-        .map_err(|e| GpuError::Weights(format!("{what}: {e}")))
+    crate::kernel::tensor_f32(t).map_err(|e| GpuError::Weights(format!("{what}: {e}")))
 }
 
 impl FrameCodes {

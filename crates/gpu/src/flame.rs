@@ -5,7 +5,7 @@
 
 use std::sync::Arc;
 
-use candle_core::{DType, Tensor};
+use candle_core::Tensor;
 use gagavatar_flame::{FlameIdentity, FlameModel};
 
 use crate::device::Gpu;
@@ -42,10 +42,7 @@ pub struct GpuFlame {
 }
 
 fn host(t: &Tensor, what: &str) -> Result<Vec<f32>> {
-    t.to_dtype(DType::F32)
-        .and_then(|t| t.flatten_all())
-        .and_then(|t| t.to_vec1::<f32>())
-        .map_err(|e| GpuError::Weights(format!("FLAME {what}: {e}")))
+    crate::kernel::tensor_f32(t).map_err(|e| GpuError::Weights(format!("FLAME {what}: {e}")))
 }
 
 fn kernels(gpu: &Gpu) -> Result<(Arc<Kernel>, Arc<Kernel>)> {
@@ -208,7 +205,7 @@ mod tests {
     use super::*;
     use crate::kernel::record_all;
     use crate::testutil::{assert_close, gpu};
-    use candle_core::Device;
+    use candle_core::{DType, Device};
     use gagavatar_flame::{synthesize, FlameConfig};
     use gagavatar_splat::testscene::Rng;
 

@@ -286,6 +286,13 @@ fn poisoned<T>(_: T) -> GpuError {
     GpuError::Device("kernel cache lock poisoned".into())
 }
 
+/// A tensor's values as f32, row-major (what every upload of weights or inputs starts from).
+pub fn tensor_f32(t: &candle_core::Tensor) -> candle_core::Result<Vec<f32>> {
+    t.to_dtype(candle_core::DType::F32)?
+        .flatten_all()?
+        .to_vec1::<f32>()
+}
+
 /// Uniform parameters as 32-bit words, padded to whole 16-byte rows (WGSL's uniform layout
 /// for a struct of scalars: declare the fields in the same order, all `u32`/`i32`/`f32`).
 #[derive(Debug, Clone, Default)]

@@ -13,7 +13,7 @@ use std::f32::consts::SQRT_2;
 
 use gagavatar_net::ModelConfig;
 
-use crate::conv::{Act, At, Conv, Ops};
+use crate::conv::{Act, At, Conv, ConvWeights, Ops};
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
 use crate::kernel::Step;
@@ -59,14 +59,6 @@ impl Vecs {
     }
 }
 
-struct ConvW {
-    weight: wgpu::Buffer,
-    bias: Option<u32>,
-    cin: usize,
-    cout: usize,
-    k: usize,
-}
-
 struct ModW {
     weight: wgpu::Buffer,
     cin: usize,
@@ -90,7 +82,14 @@ struct Loader<'g, 'w> {
 }
 
 impl Loader<'_, '_> {
-    fn conv(&mut self, key: &str, cin: usize, cout: usize, k: usize, bias: bool) -> Result<ConvW> {
+    fn conv(
+        &mut self,
+        key: &str,
+        cin: usize,
+        cout: usize,
+        k: usize,
+        bias: bool,
+    ) -> Result<ConvWeights> {
         let w = get(self.weights, &format!("{key}.weight"), cout * cin * k * k)?;
         let bias = if bias {
             let b = get(self.weights, &format!("{key}.bias"), cout)?;
@@ -98,7 +97,7 @@ impl Loader<'_, '_> {
         } else {
             None
         };
-        Ok(ConvW {
+        Ok(ConvWeights {
             weight: self.gpu.buffer_with(key, &w),
             bias,
             cin,
@@ -108,13 +107,13 @@ impl Loader<'_, '_> {
     }
 
     /// Two 3x3 convolutions reading the same input, as one with both output sets.
-    fn conv_pair(&mut self, a: &str, b: &str, cin: usize, cout: usize) -> Result<ConvW> {
+    fn conv_pair(&mut self, a: &str, b: &str, cin: usize, cout: usize) -> Result<ConvWeights> {
         let n = cout * cin * 9;
         let mut w = get(self.weights, &format!("{a}.weight"), n)?;
         w.extend(get(self.weights, &format!("{b}.weight"), n)?);
         let mut bias = get(self.weights, &format!("{a}.bias"), cout)?;
         bias.extend(get(self.weights, &format!("{b}.bias"), cout)?);
-        Ok(ConvW {
+        Ok(ConvWeights {
             weight: self.gpu.buffer_with(a, &w),
             bias: Some(self.vecs.push(&bias)),
             cin,
@@ -177,9 +176,9 @@ impl Loader<'_, '_> {
 }
 
 struct Block {
-    conv1: ConvW,
-    conv2: ConvW,
-    skip: ConvW,
+    conv1: ConvWeights,
+    conv2: ConvWeights,
+    skip: ConvWeights,
 }
 
 /// The renderer, bound to its input buffer (`[color_dim, S, S]`, the splatted image).
@@ -356,47 +355,15 @@ impl GpuRenderer {
             split_scratch: &split_scratch,
         };
         let act = |label: &str, c: usize, r: usize| gpu.buffer(label, 4 * (c * r * r) as u64);
-        let plain = |cw: &ConvW, r: usize, input: At<'_>, out: At<'_>| -> Result<Vec<Step>> {
-            ops.conv(&Conv {
-                cin: cw.cin,
-                cout: cw.cout,
-                h: r,
-                w: r,
-                k: cw.k,
-                input,
-                weight: &cw.weight,
-                bias: cw.bias,
-                in_scale: None,
-                out_scale: None,
-                noise: None,
-                in_relu: false,
-                act: Act::None,
-                residual: None,
-                sft: None,
-                sigmoid: false,
-                out,
-            })
+        let plain = |cw: &ConvWeights, r: usize, input: At<'_>, out: At<'_>| -> Result<Vec<Step>> {
+            ops.conv(&Conv::plain(cw, (r, r), input, out))
         };
         let conv_lrelu =
-            |cw: &ConvW, r: usize, input: At<'_>, out: At<'_>, residual: Option<At<'_>>| {
+            |cw: &ConvWeights, r: usize, input: At<'_>, out: At<'_>, residual: Option<At<'_>>| {
                 ops.conv(&Conv {
-                    cin: cw.cin,
-                    cout: cw.cout,
-                    h: r,
-                    w: r,
-                    k: cw.k,
-                    input,
-                    weight: &cw.weight,
-                    bias: cw.bias,
-                    in_scale: None,
-                    out_scale: None,
-                    noise: None,
-                    in_relu: false,
                     act: Act::Lrelu,
                     residual,
-                    sft: None,
-                    sigmoid: false,
-                    out,
+                    ..Conv::plain(cw, (r, r), input, out)
                 })
             };
 

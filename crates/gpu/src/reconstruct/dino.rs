@@ -12,8 +12,8 @@
 
 use gagavatar_net::ModelConfig;
 
-use super::parts::{plain, Ctx, Loader, Lw};
-use crate::conv::{Act, At, Conv};
+use super::parts::{Ctx, Loader};
+use crate::conv::{Act, At, Conv, ConvWeights};
 use crate::device::Gpu;
 use crate::error::Result;
 use crate::kernel::Step;
@@ -24,17 +24,17 @@ const PREFIX: &str = "base_model.dino_model";
 
 struct BlockW {
     norm1: (u32, u32),
-    qkv: Lw,
-    proj: Lw,
+    qkv: ConvWeights,
+    proj: ConvWeights,
     ls1: u32,
     norm2: (u32, u32),
-    fc1: Lw,
-    fc2: Lw,
+    fc1: ConvWeights,
+    fc2: ConvWeights,
     ls2: u32,
 }
 
 pub(crate) struct DinoWeights {
-    patch: Lw,
+    patch: ConvWeights,
     /// class token then position embedding.
     emb: wgpu::Buffer,
     blocks: Vec<BlockW>,
@@ -54,19 +54,20 @@ impl DinoWeights {
             Ok((ld.push(&w), ld.push(&b)))
         };
         // A layer followed by LayerScale: the bias scaled by gamma, gamma as the output scale.
-        let scaled = |ld: &mut Loader, key: &str, cin: usize, gamma: &[f32]| -> Result<(Lw, u32)> {
-            let w = ld.get(&format!("{key}.weight"), c * cin)?;
-            let b = ld.get(&format!("{key}.bias"), c)?;
-            let b: Vec<f32> = b.iter().zip(gamma).map(|(b, g)| b * g).collect();
-            let lw = Lw {
-                weight: ld.gpu.buffer_with(key, &w),
-                bias: Some(ld.push(&b)),
-                cin,
-                cout: c,
-                k: 1,
+        let scaled =
+            |ld: &mut Loader, key: &str, cin: usize, gamma: &[f32]| -> Result<(ConvWeights, u32)> {
+                let w = ld.get(&format!("{key}.weight"), c * cin)?;
+                let b = ld.get(&format!("{key}.bias"), c)?;
+                let b: Vec<f32> = b.iter().zip(gamma).map(|(b, g)| b * g).collect();
+                let lw = ConvWeights {
+                    weight: ld.gpu.buffer_with(key, &w),
+                    bias: Some(ld.push(&b)),
+                    cin,
+                    cout: c,
+                    k: 1,
+                };
+                Ok((lw, ld.push(gamma)))
             };
-            Ok((lw, ld.push(gamma)))
-        };
         let mut blocks = Vec::with_capacity(cfg.vit_depth);
         for i in 0..cfg.vit_depth {
             let b = format!("{PREFIX}.blocks.{i}");
@@ -160,7 +161,7 @@ impl GpuDino {
             At::new(&self.cols),
         )?;
         steps.push(im2col);
-        steps.extend(ctx.conv(&plain(
+        steps.extend(ctx.conv(&Conv::plain(
             &w.patch,
             (1, g),
             At::new(&self.cols),
@@ -177,7 +178,7 @@ impl GpuDino {
         let [xa, xb] = &self.x;
         for (i, b) in w.blocks.iter().enumerate() {
             steps.push(ops.layer_norm(all, b.norm1, LN_EPS, At::new(xa), At::new(&self.ln))?);
-            steps.extend(ctx.conv(&plain(
+            steps.extend(ctx.conv(&Conv::plain(
                 &b.qkv,
                 (1, n),
                 At::new(&self.ln),
@@ -193,17 +194,17 @@ impl GpuDino {
             steps.extend(ctx.conv(&Conv {
                 out_scale: Some(b.ls1),
                 residual: Some(At::new(xa)),
-                ..plain(&b.proj, (1, n), At::new(&self.att), At::new(xb))
+                ..Conv::plain(&b.proj, (1, n), At::new(&self.att), At::new(xb))
             })?);
             steps.push(ops.layer_norm(all, b.norm2, LN_EPS, At::new(xb), At::new(&self.ln))?);
             steps.extend(ctx.conv(&Conv {
                 act: Act::Gelu,
-                ..plain(&b.fc1, (1, n), At::new(&self.ln), At::new(&self.mlp))
+                ..Conv::plain(&b.fc1, (1, n), At::new(&self.ln), At::new(&self.mlp))
             })?);
             steps.extend(ctx.conv(&Conv {
                 out_scale: Some(b.ls2),
                 residual: Some(At::new(xb)),
-                ..plain(&b.fc2, (1, n), At::new(&self.mlp), At::new(xa))
+                ..Conv::plain(&b.fc2, (1, n), At::new(&self.mlp), At::new(xa))
             })?);
             if i >= first_out {
                 steps.push(ops.layer_norm(

@@ -9,8 +9,8 @@
 use gagavatar_net::config::DIR_ENCODING_DIM;
 use gagavatar_net::ModelConfig;
 
-use super::parts::{plain, Ctx, Loader, Lw};
-use crate::conv::{Act, At, Conv};
+use super::parts::{Ctx, Loader};
+use crate::conv::{Act, At, Conv, ConvWeights};
 use crate::device::Gpu;
 use crate::error::Result;
 use crate::kernel::Step;
@@ -19,32 +19,32 @@ const PREFIX: &str = "base_model";
 
 enum ResizeW {
     /// The product weight `[cout k k, cin]` (bias in the vector buffer) and `k`.
-    Up(Lw, u32, usize),
+    Up(ConvWeights, u32, usize),
     Identity,
-    Down(Lw),
+    Down(ConvWeights),
 }
 
 struct LevelW {
-    project: Lw,
+    project: ConvWeights,
     resize: ResizeW,
-    layer_rn: Lw,
+    layer_rn: ConvWeights,
 }
 
 struct UnitW {
-    conv1: Lw,
-    conv2: Lw,
+    conv1: ConvWeights,
+    conv2: ConvWeights,
 }
 
 struct FusionW {
     unit1: UnitW,
     unit2: UnitW,
-    out_conv: Lw,
+    out_conv: ConvWeights,
 }
 
 pub(crate) struct DptWeights {
     levels: Vec<LevelW>,
     refinenet: Vec<FusionW>,
-    output_conv: Lw,
+    output_conv: ConvWeights,
 }
 
 impl DptWeights {
@@ -69,7 +69,7 @@ impl DptWeights {
                         }
                     }
                     let bias = ld.get(&format!("{key}.bias"), ck)?;
-                    let lw = Lw {
+                    let lw = ConvWeights {
                         weight: ld.gpu.buffer_with(&key, &wr),
                         bias: None,
                         cin: ck,
@@ -185,10 +185,15 @@ impl GpuDpt {
                 ResizeW::Identity => feat,
                 _ => At::new(&self.projected[k]),
             };
-            steps.extend(ctx.conv(&plain(&lw.project, (g, g), At::new(&tokens[k]), project_to))?);
+            steps.extend(ctx.conv(&Conv::plain(
+                &lw.project,
+                (g, g),
+                At::new(&tokens[k]),
+                project_to,
+            ))?);
             match &lw.resize {
                 ResizeW::Up(product, bias, kk) => {
-                    steps.extend(ctx.conv(&plain(
+                    steps.extend(ctx.conv(&Conv::plain(
                         product,
                         (g, g),
                         At::new(&self.projected[k]),
@@ -208,7 +213,7 @@ impl GpuDpt {
                     )?;
                     debug_assert_eq!((oh, ow), (sk, sk));
                     steps.push(step);
-                    steps.extend(ctx.conv(&plain(
+                    steps.extend(ctx.conv(&Conv::plain(
                         product,
                         (1, sk * sk),
                         At::new(&self.up[k]),
@@ -216,7 +221,7 @@ impl GpuDpt {
                     ))?);
                 }
             }
-            steps.extend(ctx.conv(&plain(
+            steps.extend(ctx.conv(&Conv::plain(
                 &lw.layer_rn,
                 (sk, sk),
                 At::new(level),
@@ -235,7 +240,7 @@ impl GpuDpt {
             steps.extend(self.fusion(ctx, fw, a, skip, (si, so), &self.fused[j])?);
         }
         let p = self.plane;
-        steps.extend(ctx.conv(&plain(
+        steps.extend(ctx.conv(&Conv::plain(
             &w.output_conv,
             (p, p),
             At::new(&self.fused[3]),
@@ -257,11 +262,11 @@ impl GpuDpt {
         let mut steps = ctx.conv(&Conv {
             in_relu: true,
             act: Act::Relu,
-            ..plain(&u.conv1, (side, side), At::new(x), At::new(t))
+            ..Conv::plain(&u.conv1, (side, side), At::new(x), At::new(t))
         })?;
         steps.extend(ctx.conv(&Conv {
             residual: Some(At::new(x)),
-            ..plain(&u.conv2, (side, side), At::new(t), At::new(out))
+            ..Conv::plain(&u.conv2, (side, side), At::new(t), At::new(out))
         })?);
         Ok(steps)
     }
@@ -290,7 +295,7 @@ impl GpuDpt {
             At::new(t3),
             At::new(&self.upsampled),
         )?);
-        steps.extend(ctx.conv(&plain(
+        steps.extend(ctx.conv(&Conv::plain(
             &fw.out_conv,
             (so, so),
             At::new(&self.upsampled),

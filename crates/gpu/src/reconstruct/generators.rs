@@ -15,8 +15,8 @@ use gagavatar_net::ModelConfig;
 
 use super::dino::GpuDino;
 use super::ops::GaussianOut;
-use super::parts::{plain, Ctx, GpuAvatar, Loader, Lw};
-use crate::conv::{Act, At, Conv};
+use super::parts::{Ctx, GpuAvatar, Loader};
+use crate::conv::{Act, At, Conv, ConvWeights};
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
 use crate::kernel::Step;
@@ -29,25 +29,22 @@ struct ExprW {
     /// The identity half `W_b` `[h, C]` (None: the `no_fid_in_expression` ablation, where
     /// the row is the bias alone) and the first layer's bias.
     id: (Option<wgpu::Buffer>, wgpu::Buffer),
-    layers: [Lw; 3],
+    layers: [ConvWeights; 3],
     /// The heads' first layers, feature part `[4 hh, h]` (bias: `head_bias`).
-    heads_x: Lw,
+    heads_x: ConvWeights,
     /// Their encoding part `[4 hh, E]` and biases `[4 hh]`.
     heads_enc: (wgpu::Buffer, wgpu::Buffer),
     /// Block-diagonal second layers `[C + 8, 4 hh]`.
-    heads_out: Lw,
+    heads_out: ConvWeights,
 }
 
 pub(crate) struct GenWeights {
     expr: ExprW,
-    lifts: Vec<[Lw; 4]>,
+    lifts: Vec<[ConvWeights; 4]>,
 }
 
 fn to_vec(t: &Tensor, what: &str) -> Result<Vec<f32>> {
-    t.to_dtype(candle_core::DType::F32)
-        .and_then(|t| t.flatten_all())
-        .and_then(|t| t.to_vec1::<f32>())
-        .map_err(|e| GpuError::Weights(format!("{what}: {e}")))
+    crate::kernel::tensor_f32(t).map_err(|e| GpuError::Weights(format!("{what}: {e}")))
 }
 
 impl GenWeights {
@@ -112,7 +109,7 @@ impl GenWeights {
             second_b.extend(ld.get(&format!("{p}.{name}_layers.2.bias"), outs[k])?);
             row += outs[k];
         }
-        let heads_x = Lw {
+        let heads_x = ConvWeights {
             weight: ld.gpu.buffer_with("heads x", &wx),
             bias: Some(0),
             cin: h,
@@ -123,7 +120,7 @@ impl GenWeights {
             ld.gpu.buffer_with("heads encoding", &we),
             ld.gpu.buffer_with("heads bias", &bh),
         );
-        let heads_out = Lw {
+        let heads_out = ConvWeights {
             weight: ld.gpu.buffer_with("heads out", &second),
             bias: Some(ld.push(&second_b)),
             cin: 4 * hh,
@@ -236,13 +233,13 @@ impl GenBuffers {
         let [l2, l4, l6] = &x.layers;
         g.extend(ctx.conv(&Conv {
             act: Act::Relu,
-            ..plain(l2, (1, v), At::new(xa), At::new(xb))
+            ..Conv::plain(l2, (1, v), At::new(xa), At::new(xb))
         })?);
         g.extend(ctx.conv(&Conv {
             act: Act::Relu,
-            ..plain(l4, (1, v), At::new(xb), At::new(xa))
+            ..Conv::plain(l4, (1, v), At::new(xb), At::new(xa))
         })?);
-        g.extend(ctx.conv(&plain(l6, (1, v), At::new(xa), At::new(xb)))?);
+        g.extend(ctx.conv(&Conv::plain(l6, (1, v), At::new(xa), At::new(xb)))?);
         g.push(ops.linear(
             e,
             4 * hh,
@@ -255,11 +252,11 @@ impl GenBuffers {
         g.extend(ctx.conv_with(
             &Conv {
                 act: Act::Relu,
-                ..plain(&x.heads_x, (1, v), At::new(xb), At::new(&self.head_hidden))
+                ..Conv::plain(&x.heads_x, (1, v), At::new(xb), At::new(&self.head_hidden))
             },
             &self.head_bias,
         )?);
-        g.extend(ctx.conv(&plain(
+        g.extend(ctx.conv(&Conv::plain(
             &x.heads_out,
             (1, v),
             At::new(&self.head_hidden),
@@ -299,10 +296,15 @@ impl GenBuffers {
             for (cw, input, out) in [(c0, f_local, ha), (c2, ha, hb), (c4, hb, ha)] {
                 l.extend(ctx.conv(&Conv {
                     act: Act::Relu,
-                    ..plain(cw, (s, s), At::new(input), At::new(out))
+                    ..Conv::plain(cw, (s, s), At::new(input), At::new(out))
                 })?);
             }
-            l.extend(ctx.conv(&plain(c6, (s, s), At::new(ha), At::new(&self.raw_lift)))?);
+            l.extend(ctx.conv(&Conv::plain(
+                c6,
+                (s, s),
+                At::new(ha),
+                At::new(&self.raw_lift),
+            ))?);
             l.push(ops.gaussians(
                 &GaussianOut {
                     m: s * s,

@@ -51,10 +51,7 @@ struct HostInputs {
 }
 
 fn host(t: &Tensor, what: &str) -> Result<Vec<f32>> {
-    t.to_dtype(DType::F32)
-        .and_then(|t| t.flatten_all())
-        .and_then(|t| t.to_vec1::<f32>())
-        .map_err(|e| input_err(what, e.to_string()))
+    crate::kernel::tensor_f32(t).map_err(|e| input_err(what, e.to_string()))
 }
 
 /// `reconstruct` on the GPU for one model: weights uploaded and every buffer and kernel built

@@ -4,12 +4,12 @@
 use std::cell::Cell;
 use std::collections::HashMap;
 
-use candle_core::{DType, Tensor};
+use candle_core::Tensor;
 use gagavatar_net::model::Avatar;
 use gagavatar_net::ModelConfig;
 
 pub use crate::conv::At;
-use crate::conv::{Act, Conv, Ops};
+use crate::conv::{Conv, ConvWeights, Ops};
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
 use crate::kernel::Step;
@@ -119,15 +119,6 @@ impl GpuAvatar {
     }
 }
 
-/// A layer's weight on the GPU and its bias's offset in the vector buffer.
-pub(crate) struct Lw {
-    pub weight: wgpu::Buffer,
-    pub bias: Option<u32>,
-    pub cin: usize,
-    pub cout: usize,
-    pub k: usize,
-}
-
 /// Uploads the weights (by checkpoint key) and builds the shared vector buffer's contents.
 pub(crate) struct Loader<'a> {
     pub gpu: &'a Gpu,
@@ -144,11 +135,7 @@ impl Loader<'_> {
 
     /// The values of `key`, which must hold `len` of them.
     pub fn get(&self, key: &str, len: usize) -> Result<Vec<f32>> {
-        let v = self
-            .tensor(key)?
-            .to_dtype(DType::F32)
-            .and_then(|t| t.flatten_all())
-            .and_then(|t| t.to_vec1::<f32>())
+        let v = crate::kernel::tensor_f32(self.tensor(key)?)
             .map_err(|e| GpuError::Weights(format!("{key}: {e}")))?;
         if v.len() != len {
             return Err(GpuError::Weights(format!(
@@ -167,7 +154,14 @@ impl Loader<'_> {
 
     /// A convolution (or linear layer: `k` = 1) stored `[cout, cin k k]`, with its bias
     /// (`key.bias`) in the vector buffer when `bias`.
-    pub fn conv(&mut self, key: &str, cin: usize, cout: usize, k: usize, bias: bool) -> Result<Lw> {
+    pub fn conv(
+        &mut self,
+        key: &str,
+        cin: usize,
+        cout: usize,
+        k: usize,
+        bias: bool,
+    ) -> Result<ConvWeights> {
         let w = self.get(&format!("{key}.weight"), cout * cin * k * k)?;
         let bias = if bias {
             let b = self.get(&format!("{key}.bias"), cout)?;
@@ -175,7 +169,7 @@ impl Loader<'_> {
         } else {
             None
         };
-        Ok(Lw {
+        Ok(ConvWeights {
             weight: self.gpu.buffer_with(key, &w),
             bias,
             cin,
@@ -228,33 +222,5 @@ impl<'a> Ctx<'a> {
             )));
         }
         Ops { vecs, ..self.ops() }.conv(c)
-    }
-}
-
-/// A convolution of `w` over `[cin, h, wd]` with its bias and nothing else in the epilogue.
-pub(crate) fn plain<'b>(
-    w: &'b Lw,
-    (h, wd): (usize, usize),
-    input: At<'b>,
-    out: At<'b>,
-) -> Conv<'b> {
-    Conv {
-        cin: w.cin,
-        cout: w.cout,
-        h,
-        w: wd,
-        k: w.k,
-        input,
-        weight: &w.weight,
-        bias: w.bias,
-        in_scale: None,
-        out_scale: None,
-        noise: None,
-        in_relu: false,
-        act: Act::None,
-        residual: None,
-        sft: None,
-        sigmoid: false,
-        out,
     }
 }
