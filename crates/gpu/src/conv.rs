@@ -154,7 +154,7 @@ fn flag(b: bool) -> String {
 
 /// The per-thread accumulators of a tile's `tm x tn` outputs, as scalar variables (written out
 /// so that every compiler keeps them in registers).
-fn micro_decl(t: ConvTile) -> String {
+pub(crate) fn micro_decl(t: ConvTile) -> String {
     let mut s = String::new();
     for i in 0..t.tm {
         for j in 0..t.tn {
@@ -165,7 +165,7 @@ fn micro_decl(t: ConvTile) -> String {
 }
 
 /// One depth step of the micro-tile: `tm` weights times `tn` inputs, unrolled.
-fn micro_body(t: ConvTile) -> String {
+pub(crate) fn micro_body(t: ConvTile) -> String {
     let mut s = String::new();
     for i in 0..t.tm {
         s += &format!("            let a_{i} = As[ar + {i}u];\n");
@@ -181,7 +181,7 @@ fn micro_body(t: ConvTile) -> String {
     s
 }
 
-fn micro_emit(t: ConvTile) -> String {
+pub(crate) fn micro_emit(t: ConvTile) -> String {
     let mut s = String::new();
     for i in 0..t.tm {
         for j in 0..t.tn {
@@ -397,6 +397,17 @@ impl Ops<'_> {
             ));
         }
         let p = plan(self.tuning, c.cin, c.cout, c.h, c.w, c.k);
+        let need = 4 * p.slices as u64 * (c.cout * c.h * c.w) as u64;
+        if p.split > 0 && need > self.split_scratch.size() {
+            return Err(GpuError::Device(format!(
+                "split-K scratch of {} bytes for a {}->{} {}x{} layer that needs {need}",
+                self.split_scratch.size(),
+                c.cin,
+                c.cout,
+                c.h,
+                c.w
+            )));
+        }
         let (bm, bn, _) = p.tile.dims();
         let (name, name_split, source): (_, _, &str) = match p.tile {
             Tile::Simt(_) => ("conv", "conv_split", &CONV),

@@ -232,6 +232,18 @@ impl Gpu {
         Ok(group)
     }
 
+    /// Records `steps` in order into one compute pass and submits it (without waiting).
+    pub fn submit(&self, steps: &[Step]) {
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
+            record_all(&mut pass, steps);
+        }
+        self.queue.submit([enc.finish()]);
+    }
+
     /// Copies a buffer's first `bytes` bytes back to the host (waits for the GPU).
     pub fn read_back(&self, src: &wgpu::Buffer, bytes: u64) -> Result<Vec<u8>> {
         let size = bytes.next_multiple_of(4).max(4);

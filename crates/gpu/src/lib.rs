@@ -7,6 +7,7 @@ pub mod device;
 pub mod drive;
 pub mod error;
 pub mod flame;
+pub mod grad;
 pub mod kernel;
 pub mod pipelines;
 pub mod policy;

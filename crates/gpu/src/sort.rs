@@ -240,20 +240,8 @@ impl RadixSort {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kernel::record_all;
     use crate::testutil::gpu;
     use gagavatar_splat::testscene::Rng;
-
-    fn run(g: &Gpu, steps: &[Step]) {
-        let mut enc = g
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
-            record_all(&mut pass, steps);
-        }
-        g.queue.submit([enc.finish()]);
-    }
 
     /// Random keys with many repeats, sorted stably (the values record the input order), with
     /// counts that are not whole blocks, for several tunings.
@@ -298,7 +286,7 @@ mod tests {
                 None,
             )
             .unwrap();
-            run(g, &sort.steps);
+            g.submit(&sort.steps);
             let (ko, vo) = sort.result(&kb, &vb);
             let got_k = g.read_u32(ko, n).unwrap();
             let got_v = g.read_u32(vo, n).unwrap();
@@ -331,7 +319,7 @@ mod tests {
             let out = g.buffer("o", 4 * n as u64);
             let sizes = g.buffer("sizes", 16);
             let steps = scan_steps(g, &t, &db, &out, &sizes, &Count::fixed(n as u32), 2).unwrap();
-            run(g, &steps);
+            g.submit(&steps);
             let got = g.read_u32(&out, n).unwrap();
             let mut acc = 0u32;
             for i in 0..n {

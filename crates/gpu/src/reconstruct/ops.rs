@@ -467,23 +467,11 @@ impl Ops<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kernel::record_all;
     use crate::testutil::{assert_close, gpu};
     use gagavatar_splat::testscene::Rng;
 
     /// f32 sums of up to 1370 x 64 products against f64.
     const ATTENTION_TOL: f64 = 2e-5;
-
-    fn run(g: &crate::Gpu, steps: &[Step]) {
-        let mut enc = g
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
-            record_all(&mut pass, steps);
-        }
-        g.queue.submit([enc.finish()]);
-    }
 
     fn ops<'a>(g: &'a crate::Gpu, t: &'a crate::Tuning, b: &'a wgpu::Buffer) -> Ops<'a> {
         Ops {
@@ -543,7 +531,7 @@ mod tests {
             let step = ops
                 .attention(heads, d, n, At::off(&xb, off), At::off(&out, 2))
                 .unwrap();
-            run(g, &[step]);
+            g.submit(&[step]);
             let got = g.read_f32(&out, 2 + c * n).unwrap();
             assert_close(
                 &format!("attention {heads} heads x {d}, {n} tokens"),
@@ -589,7 +577,7 @@ mod tests {
                 let step = ops
                     .resize_taps(&tables, k, (3, h, oh), n, At::off(&xb, 5), At::off(&out, 1))
                     .unwrap();
-                run(g, &[step]);
+                g.submit(&[step]);
                 let got = g.read_f32(&out, 1 + 3 * oh * oh).unwrap();
                 assert_close(
                     &format!("resize {h} -> {oh}, {what}"),

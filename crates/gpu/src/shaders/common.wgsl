@@ -10,17 +10,19 @@ fn lrelu(v: f32) -> f32 {
     return max(v, 0.2 * v);
 }
 
-// GELU with erf from Abramowitz & Stegun 7.1.26 (|erf error| < 1.5e-7), the formula of the
-// CPU path's ViT (and PyTorch's vectorised CPU erf).
-fn gelu_erf(v: f32) -> f32 {
-    let z = abs(v) * 0.70710678118654752;
+// erf from Abramowitz & Stegun 7.1.26 (|error| < 1.5e-7), the formula of the CPU path's ViT (and
+// PyTorch's vectorised CPU erf).
+fn erf_as(x: f32) -> f32 {
+    let z = abs(x);
     let t = 1.0 / (1.0 + 0.3275911 * z);
     let poly = t * (0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429))));
-    var e = 1.0 - poly * exp(-z * z);
-    if (v < 0.0) {
-        e = -e;
-    }
-    return 0.5 * v * (1.0 + e);
+    let e = 1.0 - poly * exp(-z * z);
+    return select(e, -e, x < 0.0);
+}
+
+// GELU with erf, `v (1 + erf(v / sqrt 2)) / 2`.
+fn gelu_erf(v: f32) -> f32 {
+    return 0.5 * v * (1.0 + erf_as(v * 0.70710678118654752));
 }
 
 // The CPU splatting's exp (gagavatar_splat::real::exp_f32), operation for operation: Cody-Waite

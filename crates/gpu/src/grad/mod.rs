@@ -1,0 +1,18 @@
+//! Training's backward kernels on the GPU, the first pieces of `train --device gpu`: the
+//! gradients of a convolution (input, weight, bias), of its activations, and the Adam update.
+//!
+//! They are recorded [`Step`](crate::kernel::Step)s like the forward's, and they reuse the
+//! forward's kernels where the mathematics allows: a stride-1 convolution's input gradient is
+//! the same convolution of the output gradient with the weight's channels swapped and its
+//! kernel rotated ([`conv::ConvGrad`]), so it runs on the forward's f32 or tensor-core kernels.
+//! Sums over pixels are split into slices that a second kernel adds in a fixed order, so a
+//! gradient does not depend on how the device schedules its workgroups (the multi-rank
+//! trajectory test needs every rank's gradients to be reproducible).
+
+pub mod conv;
+pub mod layers;
+pub mod modconv;
+pub mod optim;
+
+#[cfg(test)]
+mod tests;
