@@ -17,7 +17,7 @@ use candle_nn::VarBuilder;
 use std::sync::Arc;
 
 use gagavatar_ops::bf16::Bf16Linear;
-use gagavatar_ops::vit;
+use gagavatar_ops::vit::{self, LinearEpilogue};
 use gagavatar_ops::Precision;
 use gagavatar_ops::{resize, ResizeMode};
 
@@ -51,6 +51,21 @@ pub fn preprocess(image: &Tensor, cfg: &ModelConfig) -> Result<Tensor> {
         .to_dtype(image.dtype())?
         .reshape((1, 3, 1, 1))?;
     x.broadcast_sub(&mean)?.broadcast_mul(&inv_std)
+}
+
+/// What follows a [`Linear`] in the ViT's blocks.
+#[derive(Debug, Clone, Copy)]
+enum After<'a> {
+    /// Nothing (the bias is the layer's).
+    Bias,
+    /// Exact GELU (the MLP's first layer).
+    Gelu,
+    /// `residual + ls * y` (LayerScale and the residual connection; `residual` has `y`'s
+    /// elements in any shape).
+    LayerScale {
+        ls: &'a Tensor,
+        residual: &'a Tensor,
+    },
 }
 
 /// `nn.Linear` on token rows: `x [M, in] -> [M, out]`.
@@ -111,6 +126,41 @@ impl Linear {
             LinearWeight::Live(w) => x.matmul(&w.t()?)?,
         };
         y.broadcast_add(&self.bias)
+    }
+
+    /// The layer and what follows it. Without gradients and bf16, in f32 on the CPU, the
+    /// product is written once and `after` applied to it in place (`vit::linear_epilogue`);
+    /// otherwise the same arithmetic from candle ops.
+    fn forward_then(&self, x: &Tensor, after: After) -> Result<Tensor> {
+        let operands_fixed = match after {
+            After::LayerScale { ls, residual } => !ls.track_op() && !residual.track_op(),
+            _ => true,
+        };
+        if let LinearWeight::Transposed(wt) = &self.weight {
+            if self.bf16.is_none() && fused_path(x) && !self.bias.track_op() && operands_fixed {
+                let y = x.matmul(wt)?;
+                let bias = &self.bias;
+                vit::linear_epilogue(
+                    &y,
+                    match after {
+                        After::Bias => LinearEpilogue::Bias(bias),
+                        After::Gelu => LinearEpilogue::BiasGelu(bias),
+                        After::LayerScale { ls, residual } => {
+                            LinearEpilogue::LayerScale { bias, ls, residual }
+                        }
+                    },
+                )?;
+                return Ok(y);
+            }
+        }
+        let y = self.forward(x)?;
+        match after {
+            After::Bias => Ok(y),
+            After::Gelu => gelu_erf(&y),
+            After::LayerScale { ls, residual } => {
+                residual.reshape(y.dims())? + y.broadcast_mul(ls)?
+            }
+        }
     }
 
     /// The checkpoint's `weight` [out, in] (a view, exact for both layouts).
@@ -176,18 +226,25 @@ struct Attention {
 }
 
 impl Attention {
-    /// `x [B, N, C]` -> `[B * N, C]`.
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+    /// `x [B, N, C]` (normalised) -> the heads' outputs `[B * N, C]`, before the projection.
+    fn heads(&self, x: &Tensor) -> Result<Tensor> {
         let (b, n, c) = x.dims3()?;
         let (h, d) = (self.heads, c / self.heads);
+        let scale = 1.0 / (d as f64).sqrt();
+        let rows = x.reshape((b * n, c))?;
+        if !self.bf16 && fused_path(&rows) && !self.qkv.is_live() {
+            // q, k and v read in place from the qkv product: no permuted copies.
+            let qkv = self.qkv.forward_then(&rows, After::Bias)?;
+            return vit::attention_qkv(&qkv.reshape((b, n, 3 * c))?, h, scale)?.reshape((b * n, c));
+        }
         let qkv = self
             .qkv
-            .forward(&x.reshape((b * n, c))?)?
+            .forward(&rows)?
             .reshape((b, n, 3, h, d))?
             .permute((2, 0, 3, 1, 4))?
             .contiguous()?;
         // Scaling q (N d values) is cheaper than scaling the N x N logits; mathematically equal.
-        let q = (qkv.get(0)?.reshape((b * h, n, d))? * (1.0 / (d as f64).sqrt()))?;
+        let q = (qkv.get(0)?.reshape((b * h, n, d))? * scale)?;
         let k = qkv.get(1)?.reshape((b * h, n, d))?;
         let v = qkv.get(2)?.reshape((b * h, n, d))?;
         let fused = !(q.track_op() || k.track_op() || v.track_op())
@@ -200,13 +257,16 @@ impl Attention {
         } else {
             attend(&q, &k, &v, (LOGITS_PER_CHUNK / (n * n)).max(1))?
         };
-        let y = y
-            .reshape((b, h, n, d))?
+        y.reshape((b, h, n, d))?
             .transpose(1, 2)?
             .contiguous()?
-            .reshape((b * n, c))?;
-        self.proj.forward(&y)
+            .reshape((b * n, c))
     }
+}
+
+/// Whether `x` takes the fused f32 inference kernels (no gradients, on the CPU).
+fn fused_path(x: &Tensor) -> bool {
+    !x.track_op() && x.dtype() == DType::F32 && x.device().is_cpu()
 }
 
 /// `softmax(q k^T) v` over `[heads, N, d]`, `per_chunk` heads at a time: the logits of one
@@ -277,11 +337,29 @@ impl Block {
 
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let (b, n, c) = x.dims3()?;
-        let a = self.attn.forward(&self.norm1.forward(x)?)?;
-        let x = (x + a.broadcast_mul(&self.ls1)?.reshape((b, n, c))?)?;
+        let a = self.attn.heads(&self.norm1.forward(x)?)?;
+        let x = self
+            .attn
+            .proj
+            .forward_then(
+                &a,
+                After::LayerScale {
+                    ls: &self.ls1,
+                    residual: x,
+                },
+            )?
+            .reshape((b, n, c))?;
         let h = self.norm2.forward(&x)?.reshape((b * n, c))?;
-        let m = self.fc2.forward(&gelu_erf(&self.fc1.forward(&h)?)?)?;
-        x + m.broadcast_mul(&self.ls2)?.reshape((b, n, c))?
+        let m = self.fc1.forward_then(&h, After::Gelu)?;
+        self.fc2
+            .forward_then(
+                &m,
+                After::LayerScale {
+                    ls: &self.ls2,
+                    residual: &x,
+                },
+            )?
+            .reshape((b, n, c))
     }
 }
 

@@ -5,8 +5,8 @@
 //! fallbacks for values that track gradients.
 
 use candle_core::{
-    backend::BackendStorage, bail, CpuStorage, CustomOp1, CustomOp3, InplaceOp1, Layout, Result,
-    Shape, Tensor,
+    backend::BackendStorage, bail, CpuStorage, CustomOp1, CustomOp3, InplaceOp1, InplaceOp2,
+    InplaceOp3, Layout, Result, Shape, Tensor,
 };
 use rayon::prelude::*;
 
@@ -35,6 +35,255 @@ pub fn attention_bf16(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
 /// Exact (erf) GELU, `x (1 + erf(x / sqrt 2)) / 2`, f32 or f64.
 pub fn gelu_erf(x: &Tensor) -> Result<Tensor> {
     x.contiguous()?.apply_op1_no_bwd(&GeluErfOp)
+}
+
+/// What follows one of the ViT's linear products `y = x W^T` (`[M, N]`), applied in place:
+/// `y` is a fresh f32 product that its caller owns alone, so no second `[M, N]` buffer and no
+/// extra pass over memory is needed.
+#[derive(Debug, Clone, Copy)]
+pub enum LinearEpilogue<'a> {
+    /// `y + bias`.
+    Bias(&'a Tensor),
+    /// `gelu(y + bias)`, exact (erf) GELU: the MLP's first layer.
+    BiasGelu(&'a Tensor),
+    /// `residual + ls (y + bias)`: LayerScale and the residual connection after the attention's
+    /// projection and after the MLP.
+    LayerScale {
+        bias: &'a Tensor,
+        ls: &'a Tensor,
+        residual: &'a Tensor,
+    },
+}
+
+/// Applies `e` to `y` in place (see [`LinearEpilogue`]); f32, contiguous operands.
+pub fn linear_epilogue(y: &Tensor, e: LinearEpilogue) -> Result<()> {
+    if !y.is_contiguous() {
+        bail!("linear epilogue: the product must be contiguous");
+    }
+    match e {
+        LinearEpilogue::Bias(b) => y.inplace_op2(&b.contiguous()?, &BiasOp { gelu: false }),
+        LinearEpilogue::BiasGelu(b) => y.inplace_op2(&b.contiguous()?, &BiasOp { gelu: true }),
+        LinearEpilogue::LayerScale { bias, ls, residual } => {
+            if residual.elem_count() != y.elem_count() {
+                bail!(
+                    "layer scale: residual {:?} does not match the product {:?}",
+                    residual.dims(),
+                    y.dims()
+                );
+            }
+            let bias_ls = Tensor::stack(&[bias.flatten_all()?, ls.flatten_all()?], 0)?;
+            y.inplace_op3(&bias_ls, &residual.contiguous()?, &LayerScaleOp)
+        }
+    }
+}
+
+/// The row length of an in-place epilogue's product, checked against a per-column vector.
+fn epilogue_row(l: &Layout, per_column: usize, what: &str) -> Result<usize> {
+    let n = l.dims().last().copied().unwrap_or(0);
+    if n == 0 || per_column != n {
+        bail!(
+            "{what}: product {:?} does not match a vector of {per_column}",
+            l.dims()
+        );
+    }
+    Ok(n)
+}
+
+fn contiguous_mut<'a>(d: &'a mut [f32], l: &Layout, what: &str) -> Result<&'a mut [f32]> {
+    match l.contiguous_offsets() {
+        Some((a, b)) => Ok(&mut d[a..b]),
+        None => bail!("{what}: the product must be contiguous"),
+    }
+}
+
+struct BiasOp {
+    gelu: bool,
+}
+
+impl InplaceOp2 for BiasOp {
+    fn name(&self) -> &'static str {
+        "vit-bias"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &mut CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<()> {
+        let (CpuStorage::F32(y), CpuStorage::F32(b)) = (s1, s2) else {
+            bail!("linear epilogue: f32 operands only");
+        };
+        let b = contiguous(b, l2, "linear epilogue", "bias")?;
+        let n = epilogue_row(l1, b.len(), "linear epilogue")?;
+        let y = contiguous_mut(y, l1, "linear epilogue")?;
+        let block = n * (16_384 / n).max(1);
+        y.par_chunks_mut(block).for_each(|y| {
+            if self.gelu {
+                rows::bias_gelu(y, n, b);
+            } else {
+                for r in y.chunks_exact_mut(n) {
+                    r.iter_mut().zip(b).for_each(|(v, b)| *v += b);
+                }
+            }
+        });
+        Ok(())
+    }
+}
+
+struct LayerScaleOp;
+
+impl InplaceOp3 for LayerScaleOp {
+    fn name(&self) -> &'static str {
+        "vit-layer-scale"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &mut CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<()> {
+        let (CpuStorage::F32(y), CpuStorage::F32(bl), CpuStorage::F32(res)) = (s1, s2, s3) else {
+            bail!("layer scale: f32 operands only");
+        };
+        let bl = contiguous(bl, l2, "layer scale", "bias and scale")?;
+        let res = contiguous(res, l3, "layer scale", "residual")?;
+        let n = epilogue_row(l1, bl.len() / 2, "layer scale")?;
+        let (b, ls) = bl.split_at(n);
+        let y = contiguous_mut(y, l1, "layer scale")?;
+        let block = n * (16_384 / n).max(1);
+        y.par_chunks_mut(block)
+            .zip(res.par_chunks(block))
+            .for_each(|(y, r)| rows::layer_scale(y, n, r, b, ls));
+        Ok(())
+    }
+}
+
+/// Attention straight from the qkv product `[B, N, 3C]` (q, k and v of head `h` in columns
+/// `h d`, `C + h d` and `2C + h d`, `d = C / heads`): `softmax(scale q k^T) v` per head,
+/// written to `[B, N, C]` with head `h` in columns `h d`, the layout the projection reads. The
+/// same blocked computation as [`attention`], reading and writing strided rows instead of
+/// permuted copies; the scale multiplies the logits inside the first product.
+pub fn attention_qkv(qkv: &Tensor, heads: usize, scale: f64) -> Result<Tensor> {
+    qkv.apply_op1_no_bwd(&AttentionQkvOp {
+        heads,
+        scale: scale as f32,
+    })
+}
+
+struct AttentionQkvOp {
+    heads: usize,
+    scale: f32,
+}
+
+/// A pointer that parallel tasks write through at disjoint places.
+#[derive(Clone, Copy)]
+struct SharedOut(*mut f32);
+// SAFETY: each task writes only its own head's columns (see `AttentionQkvOp::cpu_fwd`).
+unsafe impl Send for SharedOut {}
+unsafe impl Sync for SharedOut {}
+
+impl SharedOut {
+    /// The element `i` places on (a method, so closures capture the whole `Send` wrapper).
+    fn at(&self, i: usize) -> *mut f32 {
+        self.0.wrapping_add(i)
+    }
+}
+
+impl CustomOp1 for AttentionQkvOp {
+    fn name(&self) -> &'static str {
+        "vit-attention-qkv"
+    }
+
+    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+        let CpuStorage::F32(qkv) = s else {
+            bail!("attention: the fused kernel runs in f32");
+        };
+        let (b, n, c3) = l.shape().dims3()?;
+        let h = self.heads;
+        if c3 % 3 != 0 || h == 0 || (c3 / 3) % h != 0 {
+            bail!(
+                "attention: qkv {:?} does not split into 3 x {h} heads",
+                l.dims()
+            );
+        }
+        let qkv = contiguous(qkv, l, "attention", "qkv")?;
+        let c = c3 / 3;
+        let d = c / h;
+        let mut out = vec![0f32; b * n * c];
+        if n == 0 || d == 0 {
+            return Ok((CpuStorage::F32(out), Shape::from((b, n, c))));
+        }
+        let rows = ATTN_ROWS.min(n);
+        let dst = SharedOut(out.as_mut_ptr());
+        (0..b * h).into_par_iter().for_each_init(
+            || vec![0f32; rows * n],
+            |logits, task| {
+                let (bi, hi) = (task / h, task % h);
+                let base = bi * n * c3 + hi * d;
+                let (q, k, v) = (&qkv[base..], &qkv[base + c..], &qkv[base + 2 * c..]);
+                for r0 in (0..n).step_by(rows) {
+                    let r = rows.min(n - r0);
+                    let lg = &mut logits[..r * n];
+                    // SAFETY: q rows r0..r0+r, k and v rows 0..n are read at row stride 3C from
+                    // `qkv` (d values each, inside the slice); the logits are this task's own
+                    // r x n buffer; the output block (rows r0..r0+r of this batch item, columns
+                    // h d .. h d + d at row stride C) is written by this task alone.
+                    unsafe {
+                        gemm::gemm(
+                            r,
+                            n,
+                            d,
+                            lg.as_mut_ptr(),
+                            1,
+                            n as isize,
+                            false,
+                            q[r0 * c3..].as_ptr(),
+                            1,
+                            c3 as isize,
+                            k.as_ptr(),
+                            c3 as isize,
+                            1,
+                            0.0,
+                            self.scale,
+                            false,
+                            false,
+                            false,
+                            gemm::Parallelism::None,
+                        );
+                        rows::softmax(lg, n);
+                        gemm::gemm(
+                            r,
+                            d,
+                            n,
+                            dst.at((bi * n + r0) * c + hi * d),
+                            1,
+                            c as isize,
+                            false,
+                            lg.as_ptr(),
+                            1,
+                            n as isize,
+                            v.as_ptr(),
+                            1,
+                            c3 as isize,
+                            0.0,
+                            1.0,
+                            false,
+                            false,
+                            false,
+                            gemm::Parallelism::None,
+                        );
+                    }
+                }
+            },
+        );
+        Ok((CpuStorage::F32(out), Shape::from((b, n, c))))
+    }
 }
 
 /// Row-wise layer norm over the last dim with a two-pass (mean, then centred variance) reduction:
@@ -451,7 +700,7 @@ mod rows {
     /// vectorised CPU `erf` uses): `erf(z) = 1 - t (a1 + t (a2 + ...)) exp(-z^2)`,
     /// `t = 1 / (1 + p z)` for `z >= 0`, odd in `z`.
     #[inline(always)]
-    fn gelu_body(x: &[f32], out: &mut [f32]) {
+    fn gelu(v: f32) -> f32 {
         const P: f32 = 0.327_591_1;
         const A: [f32; 5] = [
             0.254_829_6,
@@ -460,13 +709,38 @@ mod rows {
             -1.453_152,
             1.061_405_4,
         ];
+        let z = (v * std::f32::consts::FRAC_1_SQRT_2).abs();
+        let t = 1.0 / (1.0 + P * z);
+        let poly = t * (A[0] + t * (A[1] + t * (A[2] + t * (A[3] + t * A[4]))));
+        let erf_abs = 1.0 - poly * exp(-z * z);
+        let erf = if v < 0.0 { -erf_abs } else { erf_abs };
+        0.5 * v * (1.0 + erf)
+    }
+
+    #[inline(always)]
+    fn gelu_body(x: &[f32], out: &mut [f32]) {
         for (o, &v) in out.iter_mut().zip(x) {
-            let z = (v * std::f32::consts::FRAC_1_SQRT_2).abs();
-            let t = 1.0 / (1.0 + P * z);
-            let poly = t * (A[0] + t * (A[1] + t * (A[2] + t * (A[3] + t * A[4]))));
-            let erf_abs = 1.0 - poly * exp(-z * z);
-            let erf = if v < 0.0 { -erf_abs } else { erf_abs };
-            *o = 0.5 * v * (1.0 + erf);
+            *o = gelu(v);
+        }
+    }
+
+    /// Rows of `n` values: `y = gelu(y + b)`.
+    #[inline(always)]
+    fn bias_gelu_body(y: &mut [f32], n: usize, b: &[f32]) {
+        for r in y.chunks_exact_mut(n) {
+            for (v, &b) in r.iter_mut().zip(b) {
+                *v = gelu(*v + b);
+            }
+        }
+    }
+
+    /// Rows of `n` values: `y = residual + ls (y + b)`.
+    #[inline(always)]
+    fn layer_scale_body(y: &mut [f32], n: usize, res: &[f32], b: &[f32], ls: &[f32]) {
+        for (r, x) in y.chunks_exact_mut(n).zip(res.chunks_exact(n)) {
+            for (((v, &x), &b), &s) in r.iter_mut().zip(x).zip(b).zip(ls) {
+                *v = x + s * (*v + b);
+            }
         }
     }
 
@@ -525,6 +799,12 @@ mod rows {
 
     dispatch!(softmax, softmax_body, (x: &mut [f32], n: usize));
     dispatch!(gelu_erf, gelu_body, (x: &[f32], out: &mut [f32]));
+    dispatch!(bias_gelu, bias_gelu_body, (y: &mut [f32], n: usize, b: &[f32]));
+    dispatch!(
+        layer_scale,
+        layer_scale_body,
+        (y: &mut [f32], n: usize, res: &[f32], b: &[f32], ls: &[f32])
+    );
     dispatch!(
         layer_norm,
         layer_norm_body,
@@ -648,6 +928,15 @@ mod rows {
             layer_norm(&x, &mut fast, n, &w, &b, 1e-6);
             layer_norm_body(&x, &mut slow, n, &w, &b, 1e-6);
             assert_eq!(fast, slow, "layer norm");
+            let (mut fast, mut slow) = (x.clone(), x.clone());
+            bias_gelu(&mut fast, n, &b);
+            bias_gelu_body(&mut slow, n, &b);
+            assert_eq!(fast, slow, "bias + gelu");
+            let res = values(4 * n, 5);
+            let (mut fast, mut slow) = (x.clone(), x.clone());
+            layer_scale(&mut fast, n, &res, &b, &w);
+            layer_scale_body(&mut slow, n, &res, &b, &w);
+            assert_eq!(fast, slow, "layer scale");
         }
     }
 }
@@ -716,6 +1005,121 @@ mod tests {
             worst.2,
             got[worst.0]
         );
+        Ok(())
+    }
+
+    /// f32 sums of up to a few hundred products in another order than f64's.
+    const F32_TOL: f64 = 2e-5;
+
+    fn assert_close_f64(what: &str, want: &[f64], got: &[f32], tol: f64) {
+        assert_eq!(want.len(), got.len(), "{what}: lengths");
+        for (i, (&w, &g)) in want.iter().zip(got).enumerate() {
+            let d = (w - g as f64).abs();
+            assert!(
+                d <= tol * w.abs().max(1.0),
+                "{what} index {i}: expected {w}, actual {g} (tolerance {tol})"
+            );
+        }
+    }
+
+    /// Attention read from the qkv product equals f64 attention of the strided q, k and v, for
+    /// two batch items, three heads, an odd token count over two query blocks and odd widths.
+    #[test]
+    fn attention_from_qkv_matches_f64() -> Result<()> {
+        let (b, h, n, d) = (2, 3, ATTN_ROWS + 41, 7);
+        let c = h * d;
+        let qkv = values(b * n * 3 * c, 9);
+        let scale = 1.0 / (d as f64).sqrt();
+        let dev = Device::Cpu;
+        let t = Tensor::from_vec(qkv.clone(), (b, n, 3 * c), &dev)?;
+        let got: Vec<f32> = attention_qkv(&t, h, scale)?.flatten_all()?.to_vec1()?;
+        let at = |bi: usize, i: usize, col: usize| qkv[(bi * n + i) * 3 * c + col] as f64;
+        let mut want = vec![0f64; b * n * c];
+        for bi in 0..b {
+            for hh in 0..h {
+                for i in 0..n {
+                    let logits: Vec<f64> = (0..n)
+                        .map(|j| {
+                            scale
+                                * (0..d)
+                                    .map(|k| at(bi, i, hh * d + k) * at(bi, j, c + hh * d + k))
+                                    .sum::<f64>()
+                        })
+                        .collect();
+                    let max = logits.iter().cloned().fold(f64::MIN, f64::max);
+                    let e: Vec<f64> = logits.iter().map(|l| (l - max).exp()).collect();
+                    let sum: f64 = e.iter().sum();
+                    for k in 0..d {
+                        want[(bi * n + i) * c + hh * d + k] = (0..n)
+                            .map(|j| e[j] / sum * at(bi, j, 2 * c + hh * d + k))
+                            .sum();
+                    }
+                }
+            }
+        }
+        assert_close_f64("attention from qkv", &want, &got, F32_TOL);
+        let bad = Tensor::zeros((1, 4, 10), candle_core::DType::F32, &dev)?;
+        assert!(
+            attention_qkv(&bad, 3, 1.0).is_err(),
+            "10 columns are not 3 x 3 heads"
+        );
+        Ok(())
+    }
+
+    /// The in-place epilogues against f64: bias, bias + GELU, LayerScale with the residual.
+    #[test]
+    fn linear_epilogues_match_f64() -> Result<()> {
+        let (m, n) = (37, 19);
+        let dev = Device::Cpu;
+        let (yv, bv, lsv, rv) = (
+            values(m * n, 11),
+            values(n, 12),
+            values(n, 13),
+            values(m * n, 14),
+        );
+        let y = |v: &[f32]| Tensor::from_vec(v.to_vec(), (m, n), &dev);
+        let bias = Tensor::from_vec(bv.clone(), n, &dev)?;
+        let ls = Tensor::from_vec(lsv.clone(), n, &dev)?;
+        let res = Tensor::from_vec(rv.clone(), (1, m, n), &dev)?;
+        let gelu64 =
+            |v: f64| 0.5 * v * (1.0 + candle_core::cpu::erf::erf_f64(v / std::f64::consts::SQRT_2));
+        let each = |f: &dyn Fn(usize, f64) -> f64| -> Vec<f64> {
+            (0..m * n)
+                .map(|i| f(i, yv[i] as f64 + bv[i % n] as f64))
+                .collect()
+        };
+        let cases: [(&str, LinearEpilogue, Vec<f64>); 3] = [
+            ("bias", LinearEpilogue::Bias(&bias), each(&|_, v| v)),
+            (
+                "bias + gelu",
+                LinearEpilogue::BiasGelu(&bias),
+                each(&|_, v| gelu64(v)),
+            ),
+            (
+                "layer scale",
+                LinearEpilogue::LayerScale {
+                    bias: &bias,
+                    ls: &ls,
+                    residual: &res,
+                },
+                each(&|i, v| rv[i] as f64 + lsv[i % n] as f64 * v),
+            ),
+        ];
+        for (what, e, want) in cases {
+            let t = y(&yv)?;
+            linear_epilogue(&t, e)?;
+            let got: Vec<f32> = t.flatten_all()?.to_vec1()?;
+            assert_close_f64(what, &want, &got, F32_TOL);
+        }
+        let short = Tensor::from_vec(bv[..n - 1].to_vec(), n - 1, &dev)?;
+        assert!(linear_epilogue(&y(&yv)?, LinearEpilogue::Bias(&short)).is_err());
+        let wrong = Tensor::zeros((m, n + 1), candle_core::DType::F32, &dev)?;
+        let e = LinearEpilogue::LayerScale {
+            bias: &bias,
+            ls: &ls,
+            residual: &wrong,
+        };
+        assert!(linear_epilogue(&y(&yv)?, e).is_err());
         Ok(())
     }
 }
