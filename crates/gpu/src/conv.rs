@@ -64,8 +64,9 @@ pub struct Conv<'a> {
     pub bias: Option<u32>,
     pub in_scale: Option<u32>,
     pub out_scale: Option<u32>,
-    /// `[h, w]` noise and its weight.
-    pub noise: Option<(At<'a>, f32)>,
+    /// `[h, w]` noise and its weight's offset in `vecs` (a trained scalar, so read from a
+    /// buffer rather than baked into the recorded dispatch).
+    pub noise: Option<(At<'a>, u32)>,
     /// ReLU of the input as it is read.
     pub in_relu: bool,
     pub act: Act,
@@ -435,7 +436,7 @@ impl Ops<'_> {
                 .u(aux.off)
                 .u(sft_scale)
                 .u(sft_shift)
-                .f(c.noise.map_or(0.0, |(_, w)| w))
+                .u(c.noise.map_or(0, |(_, w)| w))
                 .u(slices)
         };
         let mut binds = vec![Bind::Uniform];
@@ -704,6 +705,9 @@ mod tests {
         sft: bool,
         sigmoid: bool,
     }
+
+    /// Where the tests keep the noise weight in `vecs` (past the other vectors).
+    const NOISE_W_AT: u32 = 299;
 
     #[allow(clippy::too_many_arguments)]
     fn reference(
@@ -986,7 +990,16 @@ mod tests {
                 let vecs = rand(&mut rng, 300, 0.5, 1.5);
                 let aux = rand(&mut rng, 3 + cout * hw, -1.0, 1.0);
                 let sft = rand(&mut rng, 2 * cout * hw, -1.0, 1.0);
-                let want = reference(&x, &wt, &vecs, &aux, &sft, (cin, cout, h, w, k), o, 0.7);
+                let want = reference(
+                    &x,
+                    &wt,
+                    &vecs,
+                    &aux,
+                    &sft,
+                    (cin, cout, h, w, k),
+                    o,
+                    vecs[NOISE_W_AT as usize],
+                );
                 let (xb, wb, vb, ab, sb) = (
                     g.buffer_with("x", &x),
                     g.buffer_with("w", &wt),
@@ -1019,7 +1032,7 @@ mod tests {
                         bias: o.bias.then_some(0),
                         in_scale: o.in_scale.then_some(100),
                         out_scale: o.out_scale.then_some(200),
-                        noise: o.noise.then_some((At::off(&ab, 3), 0.7)),
+                        noise: o.noise.then_some((At::off(&ab, 3), NOISE_W_AT)),
                         in_relu: o.in_relu,
                         act: o.act,
                         residual: o.residual.then_some(At::off(&ab, 3)),

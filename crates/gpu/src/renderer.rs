@@ -68,7 +68,8 @@ struct ModW {
     /// Demodulation: the factors' offset and the kernel energies `[cout, cin]`.
     demod: Option<(u32, wgpu::Buffer)>,
     bias: u32,
-    noise_weight: f32,
+    /// The noise weight's offset in the vector buffer.
+    noise_weight: u32,
 }
 
 struct Loader<'g, 'w> {
@@ -157,9 +158,10 @@ impl Loader<'_, '_> {
         };
         let bias = get(self.weights, &format!("{key}.bias"), bias_len)?;
         let noise_weight = if demodulate {
-            get(self.weights, &format!("{key}.weight"), 1)?[0]
+            self.vecs
+                .push(&get(self.weights, &format!("{key}.weight"), 1)?)
         } else {
-            0.0
+            0
         };
         Ok(ModW {
             weight: self.gpu.buffer_with(&mc, &w),

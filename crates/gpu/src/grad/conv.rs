@@ -266,26 +266,61 @@ pub(crate) fn bias_grad(
     dest: At,
     accumulate: bool,
 ) -> Result<Vec<Step>> {
-    let hw = c.h * c.w;
-    let slices = hw.div_ceil(ROW_SLICE);
+    row_sums(
+        ops,
+        (c.cout, c.h * c.w),
+        c.grad_out,
+        None,
+        part,
+        dest,
+        accumulate,
+        false,
+    )
+}
+
+/// Sums of the rows of `a` `[rows, cols]`, each value times `weight[col]` when given, into
+/// `dest` (`rows` values; with `total`, their sum, one value); written or added to.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn row_sums(
+    ops: &Ops,
+    (rows, cols): (usize, usize),
+    a: At,
+    weight: Option<At>,
+    part: &wgpu::Buffer,
+    dest: At,
+    accumulate: bool,
+    total: bool,
+) -> Result<Vec<Step>> {
+    let slices = cols.div_ceil(ROW_SLICE);
+    fits("partial sum", part, rows * slices)?;
     let k = ops.gpu.kernel(
         "row_sum",
         ROW_SUM,
-        &[],
-        &[Bind::Uniform, Bind::Read, Bind::ReadWrite],
+        &[("WEIGHTED", weight.is_some().to_string())],
+        &[Bind::Uniform, Bind::Read, Bind::Read, Bind::ReadWrite],
     )?;
+    let w = weight.unwrap_or(At::new(ops.dummy));
     let u = ops.gpu.uniform(
         "row sum",
         &Params::new()
-            .u(c.cout as u32)
-            .u(hw as u32)
-            .u(c.grad_out.off)
-            .u(ROW_SLICE as u32),
+            .u(rows as u32)
+            .u(cols as u32)
+            .u(a.off)
+            .u(ROW_SLICE as u32)
+            .u(w.off)
+            .u(0)
+            .u(0)
+            .u(0),
     );
-    let g = ops.gpu.bind(&k, &[&u, c.grad_out.buf, part])?;
+    let g = ops.gpu.bind(&k, &[&u, a.buf, w.buf, part])?;
+    let (n, s) = if total {
+        (1, rows * slices)
+    } else {
+        (rows, slices)
+    };
     Ok(vec![
-        Step::new(k, g, Grid::Fixed([c.cout as u32, slices as u32, 1])).with_note(note(c)),
-        slice_sum(ops, part, c.cout, slices, dest, accumulate)?,
+        Step::new(k, g, Grid::Fixed([rows as u32, slices as u32, 1])),
+        slice_sum(ops, part, n, s, dest, accumulate)?,
     ])
 }
 

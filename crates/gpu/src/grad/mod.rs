@@ -10,9 +10,13 @@
 //! trajectory test needs every rank's gradients to be reproducible).
 
 pub mod conv;
+pub mod decoder;
 pub mod layers;
 pub mod modconv;
 pub mod optim;
 
 #[cfg(test)]
 mod tests;
+
+#[cfg(test)]
+mod decoder_tests;

@@ -16,7 +16,7 @@ struct P {
     aux_off: u32,
     sft_scale_off: u32,
     sft_shift_off: u32,
-    noise_w: f32,
+    noise_w_off: u32,
     slices: u32,
     _p1: u32,
     _p2: u32,
@@ -40,7 +40,7 @@ fn epilogue(acc: f32, co: u32, pix: u32, hw: u32) -> f32 {
         v = v + vecs[p.bias_off + co];
     }
     if (NOISE) {
-        v = v + p.noise_w * aux[p.aux_off + pix];
+        v = v + vecs[p.noise_w_off] * aux[p.aux_off + pix];
     }
     if (ACT == 1u) {
         v = lrelu(v);

@@ -1,0 +1,161 @@
+//! The decoder's training forward and backward on the GPU against candle's autograd through
+//! the CPU module (`StyleGan2Decoder`), at the tiny preset with every weight trainable.
+
+use std::collections::HashMap;
+
+use candle_core::{DType, Device, Tensor, Var};
+use candle_nn::{VarBuilder, VarMap};
+use gagavatar_net::style_unet::{Noise, StyleGan2Decoder};
+use gagavatar_net::ModelConfig;
+use gagavatar_splat::testscene::Rng;
+
+use super::decoder::GpuDecoderGrad;
+use crate::error::GpuError;
+use crate::testutil::{assert_close, gpu};
+use crate::tuning::Tuning;
+
+/// The decoder's output against the CPU module's: f32 sums through 13 modulated layers.
+const RGB_REL_TOL: f64 = 2e-5;
+/// Each gradient against candle's, relative to that gradient's largest value: the same sums
+/// in another order, through the whole decoder backwards.
+const GRAD_REL_TOL: f64 = 5e-5;
+
+fn flat(t: &Tensor) -> Vec<f32> {
+    t.flatten_all().unwrap().to_vec1().unwrap()
+}
+
+fn rel_check(what: &str, want: &[f32], got: &[f32], rel: f64) {
+    let scale = want
+        .iter()
+        .fold(0f64, |m, v| m.max(v.abs() as f64))
+        .max(1e-12);
+    assert_close(what, want, got, rel * scale);
+}
+
+#[test]
+fn decoder_gradients_match_candle_autograd() {
+    let Some(g) = gpu() else { return };
+    let cfg = ModelConfig::tiny();
+    let dev = Device::Cpu;
+    let varmap = VarMap::new();
+    let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
+    let decoder = StyleGan2Decoder::new(&cfg, vb.pp("stylegan_decoder")).unwrap();
+    let mut rng = Rng::new(61);
+    let mut host: HashMap<String, Vec<f32>> = HashMap::new();
+    let mut vars: Vec<(String, Var)> = varmap
+        .data()
+        .lock()
+        .unwrap()
+        .iter()
+        .map(|(k, v)| (k.clone(), v.clone()))
+        .collect();
+    vars.sort_by(|a, b| a.0.cmp(&b.0));
+    for (key, var) in &vars {
+        // Modulation biases near 1 (StyleGAN2's initialisation), the rest small.
+        let centre = if key.ends_with("modulation.bias") {
+            1.0
+        } else {
+            0.0
+        };
+        let v: Vec<f32> = (0..var.elem_count())
+            .map(|_| (centre + 0.5 * rng.range(-1.0, 1.0)) as f32)
+            .collect();
+        var.set(&Tensor::from_vec(v.clone(), var.shape(), &dev).unwrap())
+            .unwrap();
+        host.insert(key.clone(), v);
+    }
+    let levels = cfg.renderer_levels();
+    let sd = cfg.style_dim;
+    let code: Vec<f32> = (0..sd).map(|_| rng.range(-1.0, 1.0) as f32).collect();
+    let code_v = Var::from_vec(code.clone(), (1, sd), &dev).unwrap();
+    let mut cond_host = Vec::new();
+    let mut cond_vars = Vec::new();
+    for k in 0..levels {
+        let r = 8 << k;
+        let c = cfg.decoder_channels(r);
+        let n = c * r * r;
+        let scale: Vec<f32> = (0..n)
+            .map(|_| (1.0 + 0.2 * rng.range(-1.0, 1.0)) as f32)
+            .collect();
+        let shift: Vec<f32> = (0..n)
+            .map(|_| (0.2 * rng.range(-1.0, 1.0)) as f32)
+            .collect();
+        let sv = Var::from_vec(scale.clone(), (1, c, r, r), &dev).unwrap();
+        let hv = Var::from_vec(shift.clone(), (1, c, r, r), &dev).unwrap();
+        let mut both = scale;
+        both.extend(shift);
+        cond_host.push(both);
+        cond_vars.push((sv, hv));
+    }
+    let s = cfg.image_size;
+    let grad_rgb: Vec<f32> = (0..3 * s * s)
+        .map(|_| rng.range(-1.0, 1.0) as f32)
+        .collect();
+
+    // CPU: forward, loss = sum(G * rgb), backward.
+    let conditions: Vec<(Tensor, Tensor)> = cond_vars
+        .iter()
+        .map(|(a, b)| (a.as_tensor().clone(), b.as_tensor().clone()))
+        .collect();
+    let rgb = decoder
+        .forward(code_v.as_tensor(), &conditions, Noise::Fixed)
+        .unwrap();
+    let gt = Tensor::from_vec(grad_rgb.clone(), (1, 3, s, s), &dev).unwrap();
+    let grads = (&rgb * gt).unwrap().sum_all().unwrap().backward().unwrap();
+
+    // GPU.
+    let weights = |key: &str| -> Result<Vec<f32>, GpuError> {
+        host.get(key)
+            .cloned()
+            .ok_or_else(|| GpuError::Weights(format!("no {key}")))
+    };
+    let dec = GpuDecoderGrad::new(g, &Tuning::default(), &cfg, &weights).unwrap();
+    g.queue
+        .write_buffer(&dec.code, 0, bytemuck::cast_slice(&code));
+    for (buf, c) in dec.conditions.iter().zip(&cond_host) {
+        g.queue.write_buffer(buf, 0, bytemuck::cast_slice(c));
+    }
+    g.queue
+        .write_buffer(&dec.grad_rgb, 0, bytemuck::cast_slice(&grad_rgb));
+    g.submit(dec.forward_steps());
+    g.submit(dec.backward_steps());
+
+    rel_check(
+        "decoder rgb",
+        &flat(&rgb),
+        &g.read_f32(&dec.rgb, 3 * s * s).unwrap(),
+        RGB_REL_TOL,
+    );
+    let grad_of = |t: &Tensor| flat(grads.get(t).expect("a gradient"));
+    rel_check(
+        "d code",
+        &grad_of(code_v.as_tensor()),
+        &g.read_f32(&dec.grad_code, sd).unwrap(),
+        GRAD_REL_TOL,
+    );
+    for (k, ((sv, hv), buf)) in cond_vars.iter().zip(&dec.grad_conditions).enumerate() {
+        let mut want = grad_of(sv.as_tensor());
+        want.extend(grad_of(hv.as_tensor()));
+        let got = g.read_f32(buf, want.len()).unwrap();
+        rel_check(&format!("d condition {k}"), &want, &got, GRAD_REL_TOL);
+    }
+    let got: HashMap<String, Vec<f32>> = dec.read_grads(g).unwrap().into_iter().collect();
+    let mut checked = 0;
+    for (key, var) in &vars {
+        if key.contains(".noises.") {
+            continue;
+        }
+        let Some(gpu_grad) = got.get(key) else {
+            panic!("the GPU decoder has no gradient for {key}");
+        };
+        rel_check(
+            &format!("d {key}"),
+            &grad_of(var.as_tensor()),
+            gpu_grad,
+            GRAD_REL_TOL,
+        );
+        checked += 1;
+    }
+    assert_eq!(checked, got.len(), "every GPU gradient has a CPU parameter");
+    eprintln!("{checked} parameter gradients checked");
+}
