@@ -17,6 +17,8 @@ use gagavatar_net::ModelConfig;
 use super::conv::{conv_backward, row_sums, ConvGrad};
 use super::layers::{act_backward, resize_backward, rms_norm_backward, Kept};
 use super::modconv::{modconv_backward, ModConvGrad, ModConvScratch};
+pub use super::params::Param;
+use super::params::{get, Store};
 use crate::conv::{Act, At, Conv, Ops};
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
@@ -30,18 +32,6 @@ const SFT: &str = include_str!("../shaders/sft.wgsl");
 /// Side of noise map `i`: 4, 8, 8, 16, 16, ...
 fn noise_resolution(i: usize) -> usize {
     1 << ((i + 5) / 2)
-}
-
-/// Where a parameter's values and gradient live: `len` floats at `offset` of buffer
-/// `value` / `grad` (indices into [`GpuDecoderGrad`]'s buffers).
-#[derive(Debug, Clone)]
-pub struct Param {
-    /// The checkpoint key relative to `upsampler.`.
-    pub key: String,
-    pub value: usize,
-    pub grad: usize,
-    pub offset: usize,
-    pub len: usize,
 }
 
 /// One modulated convolution's buffers and offsets.
@@ -78,48 +68,6 @@ pub struct GpuDecoderGrad {
     pub params: Vec<Param>,
     forward: Vec<Step>,
     backward: Vec<Step>,
-}
-
-/// Buffers in creation order, so that [`Param`] can name them by index.
-struct Store<'g> {
-    gpu: &'g Gpu,
-    buffers: Vec<wgpu::Buffer>,
-    params: Vec<Param>,
-}
-
-impl Store<'_> {
-    fn add(&mut self, label: &str, data: &[f32]) -> usize {
-        self.buffers.push(self.gpu.buffer_with(label, data));
-        self.buffers.len() - 1
-    }
-    fn zeros(&mut self, label: &str, n: usize) -> usize {
-        self.buffers.push(self.gpu.buffer(label, 4 * n as u64));
-        self.buffers.len() - 1
-    }
-    /// A parameter in its own buffer, with a gradient buffer beside it.
-    fn param(&mut self, key: &str, data: Vec<f32>) -> (usize, usize) {
-        let v = self.add(key, &data);
-        let g = self.zeros(key, data.len());
-        self.params.push(Param {
-            key: key.to_string(),
-            value: v,
-            grad: g,
-            offset: 0,
-            len: data.len(),
-        });
-        (v, g)
-    }
-}
-
-fn get(weights: &WeightFn, key: &str, len: usize) -> Result<Vec<f32>> {
-    let v = weights(key)?;
-    if v.len() != len {
-        return Err(GpuError::Weights(format!(
-            "upsampler.{key} has {} values, expected {len}",
-            v.len()
-        )));
-    }
-    Ok(v)
 }
 
 impl GpuDecoderGrad {
@@ -799,13 +747,7 @@ impl GpuDecoderGrad {
 
     /// Every parameter's gradient, read back, by key.
     pub fn read_grads(&self, gpu: &Gpu) -> Result<Vec<(String, Vec<f32>)>> {
-        self.params
-            .iter()
-            .map(|p| {
-                let all = gpu.read_f32(&self.buffers[p.grad], p.offset + p.len)?;
-                Ok((p.key.clone(), all[p.offset..].to_vec()))
-            })
-            .collect()
+        super::params::read_grads(gpu, &self.buffers, &self.params)
     }
 }
 

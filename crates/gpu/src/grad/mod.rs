@@ -1,5 +1,8 @@
-//! Training's backward kernels on the GPU, the first pieces of `train --device gpu`: the
-//! gradients of a convolution (input, weight, bias), of its activations, and the Adam update.
+//! Training on the GPU, the first pieces of `train --device gpu`: the gradients of a
+//! convolution (input, weight, bias), of the activations, resizes and normalisations, of a
+//! modulated convolution with its style, the Adam update, and with them the whole neural
+//! renderer's training forward and backward ([`renderer::GpuRendererGrad`]: U-Net, condition
+//! branches, StyleGAN2 decoder, sigmoid), checked against candle's autograd.
 //!
 //! They are recorded [`Step`](crate::kernel::Step)s like the forward's, and they reuse the
 //! forward's kernels where the mathematics allows: a stride-1 convolution's input gradient is
@@ -14,9 +17,11 @@ pub mod decoder;
 pub mod layers;
 pub mod modconv;
 pub mod optim;
+pub mod params;
+pub mod renderer;
 
 #[cfg(test)]
 mod tests;
 
 #[cfg(test)]
-mod decoder_tests;
+mod renderer_tests;
