@@ -2,7 +2,8 @@
 # The GPU check of issues 30/31, in one device call (see tools/device/README.md):
 # adapter facts, the GPU parity tests on a real driver (release size included, their measured
 # maxima printed), `bench drive` at release size for both Gaussian regimes, `bench
-# reconstruct` (f16 and f32), `reenact` end to end (reconstruct on the GPU too), and a sweep of
+# reconstruct` (f16 and f32), `bench renderer-grad` (issue 31: the renderer's training forward
+# and backward), `reenact` end to end (reconstruct on the GPU too), and a sweep of
 # convolution tilings (GAGAVATAR_GPU_TUNE, no rebuild), everything written to $OUT: a
 # summary.txt to read, one JSON per bench run (bench_*.json) and check.json gathering them.
 #
@@ -10,7 +11,8 @@
 # debs in .gl/); run there with carry [".gl", ".dev"]:
 #   bash tools/device/gpu_check.sh
 set -u
-# FRAMES, SWEEP_FRAMES, REENACT_FRAMES, RECONSTRUCT_RUNS, PRESET and TESTS (a test-name filter)
+# FRAMES, SWEEP_FRAMES, REENACT_FRAMES, RECONSTRUCT_RUNS, GRAD_RUNS, PRESET and TESTS (a
+# test-name filter)
 # shrink the run for
 # a dry run on lavapipe; SKIP_TESTS=1 leaves the parity tests out.
 FRAMES=${FRAMES:-300}
@@ -79,6 +81,13 @@ for precision in f16 f32; do
     echo "exit $? (reconstruct, $precision)" >> "$OUT/summary.txt"
     tail -10 "$OUT/bench_reconstruct_$precision.txt" >> "$OUT/summary.txt"
 done
+
+log "bench renderer-grad (training forward + backward, f32), $PRESET seeded weights, ${GRAD_RUNS:-10} steps"
+timeout 90 "$BIN/gagavatar" bench renderer-grad --device gpu --preset "$PRESET" \
+    --runs "${GRAD_RUNS:-10}" --json "$OUT/bench_renderer_grad.json" \
+    > "$OUT/bench_renderer_grad.txt" 2>&1
+echo "exit $? (renderer-grad)" >> "$OUT/summary.txt"
+tail -5 "$OUT/bench_renderer_grad.txt" >> "$OUT/summary.txt"
 
 log "reenact end to end, $PRESET seeded weights, ${REENACT_FRAMES:-354} frames (records cached: no tracking), f16 then f32"
 "$BIN/gagavatar" init-weights --preset "$PRESET" --seed 1 -o "$BIN/weights.safetensors" > /dev/null 2>&1

@@ -45,6 +45,13 @@ image unless --image.\n\nExample:\n  gagavatar bench reconstruct --device gpu --
 gagavatar bench reconstruct --device gpu --preset tiny --json rec.json"
     )]
     Reconstruct(crate::cmd_bench_reconstruct::ReconstructBench),
+    /// The neural renderer's training forward and backward on one image (every parameter's
+    /// gradient and the input's) on a GPU, or on the CPU through candle's autograd.
+    #[command(
+        after_help = "Seeded random weights of the preset; the convolutions run in f32 on the GPU.\n\nExample:\n  gagavatar bench renderer-grad --device gpu --preset release --runs 10\n  \
+gagavatar bench renderer-grad --device cpu --preset small --threads 2"
+    )]
+    RendererGrad(crate::cmd_bench_renderer_grad::RendererGradBench),
     /// Face perception: tracking-mode landmarks per video frame, detection, the 256x256 matte.
     #[command(
         after_help = "Frames are images (a folder of them, or files), used in order as a video. Each frame is\ncopied right before it is timed, as a decoder would have just written it.\n\nExample:\n  ffmpeg -i clip.mp4 frames/%04d.png\n  gagavatar bench face frames --threads 2 --runs 3"
@@ -210,6 +217,7 @@ pub fn run(cmd: BenchCmd) -> Result<()> {
         BenchCmd::Video(args) => bench_video(args),
         BenchCmd::Drive(args) => crate::cmd_bench_drive::bench_drive(args),
         BenchCmd::Reconstruct(args) => crate::cmd_bench_reconstruct::bench_reconstruct(args),
+        BenchCmd::RendererGrad(args) => crate::cmd_bench_renderer_grad::bench_renderer_grad(args),
         BenchCmd::Face(args) => bench_face(args),
         BenchCmd::Eval(args) => bench_eval(args),
         BenchCmd::Track(args) => bench_track(args),

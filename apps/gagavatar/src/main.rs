@@ -5,6 +5,7 @@ mod animate;
 mod cmd_bench;
 mod cmd_bench_drive;
 mod cmd_bench_reconstruct;
+mod cmd_bench_renderer_grad;
 mod cmd_bench_serve;
 mod cmd_demo;
 mod cmd_eval;

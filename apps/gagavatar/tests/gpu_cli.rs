@@ -331,6 +331,66 @@ fn bench_drive_reports_stages_on_both_devices() {
     }
 }
 
+/// `bench renderer-grad` times the renderer's training step on the GPU (with its JSON) and on
+/// the CPU.
+#[test]
+fn bench_renderer_grad_runs_on_both_devices() {
+    let json = std::env::temp_dir().join(format!("gagavatar_grad_{}.json", std::process::id()));
+    let json_arg = json.to_string_lossy().to_string();
+    let out = run(
+        &[
+            "bench",
+            "renderer-grad",
+            "--device",
+            "gpu",
+            "--preset",
+            "tiny",
+            "--runs",
+            "1",
+            "--json",
+            &json_arg,
+        ],
+        &[],
+    );
+    if !have_gpu(&out) {
+        return;
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    for want in [
+        "renderer forward + backward on the GPU",
+        "backward dispatches",
+        "median",
+    ] {
+        assert!(
+            text.contains(want),
+            "bench renderer-grad --device gpu: no `{want}` in\n{text}"
+        );
+    }
+    let doc: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&json).expect("the JSON")).expect("valid JSON");
+    assert!(
+        doc["step_ms"]["median"].as_f64().is_some_and(|v| v > 0.0),
+        "{doc}"
+    );
+    let out = ok(&[
+        "bench",
+        "renderer-grad",
+        "--device",
+        "cpu",
+        "--preset",
+        "tiny",
+        "--runs",
+        "1",
+        "--threads",
+        "1",
+    ]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("renderer forward + backward on the CPU (candle autograd): tiny (1 threads)"),
+        "bench renderer-grad --device cpu:\n{text}"
+    );
+}
+
 #[test]
 fn no_adapter_is_one_line_for_gpu_and_a_fallback_for_auto() {
     let env = [("GAGAVATAR_GPU_ADAPTER", NO_SUCH_ADAPTER)];

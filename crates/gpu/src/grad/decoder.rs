@@ -75,7 +75,11 @@ impl GpuDecoderGrad {
     /// and backward.
     pub fn new(gpu: &Gpu, tuning: &Tuning, cfg: &ModelConfig, weights: &WeightFn) -> Result<Self> {
         cfg.validate().map_err(GpuError::Unsupported)?;
-        let tuning = &tuning.for_device(gpu);
+        // f32 throughout: f16 tensor-core inputs need loss scaling for the gradients first.
+        let tuning = &Tuning {
+            mma: false,
+            ..tuning.for_device(gpu)
+        };
         tuning.check(&gpu.limits)?;
         let s = cfg.image_size;
         let levels = cfg.renderer_levels();

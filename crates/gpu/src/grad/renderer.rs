@@ -84,7 +84,11 @@ impl GpuRendererGrad {
     /// and backward.
     pub fn new(gpu: &Gpu, tuning: &Tuning, cfg: &ModelConfig, weights: &WeightFn) -> Result<Self> {
         let decoder = GpuDecoderGrad::new(gpu, tuning, cfg, weights)?;
-        let tuning = &tuning.for_device(gpu);
+        // f32 throughout: f16 tensor-core inputs need loss scaling for the gradients first.
+        let tuning = &Tuning {
+            mma: false,
+            ..tuning.for_device(gpu)
+        };
         let s = cfg.image_size;
         let levels = cfg.renderer_levels();
         let u = |r: usize| cfg.unet_channels(r);
@@ -694,6 +698,16 @@ impl GpuRendererGrad {
         })
     }
 
+    /// Uploads the splatted image `[color_dim, size, size]` for the next forward.
+    pub fn set_input(&self, gpu: &Gpu, image: &[f32]) -> Result<()> {
+        upload(gpu, &self.input, image, "renderer input")
+    }
+
+    /// Uploads the loss gradient of the output `[3, size, size]` for the next backward.
+    pub fn set_grad_output(&self, gpu: &Gpu, grad: &[f32]) -> Result<()> {
+        upload(gpu, &self.grad_output, grad, "renderer output gradient")
+    }
+
     pub fn forward_steps(&self) -> &[Step] {
         &self.forward
     }
@@ -710,4 +724,15 @@ impl GpuRendererGrad {
         all.extend(self.decoder.read_grads(gpu)?);
         Ok(all)
     }
+}
+
+fn upload(gpu: &Gpu, buf: &wgpu::Buffer, values: &[f32], name: &str) -> Result<()> {
+    if 4 * values.len() as u64 != buf.size() {
+        return Err(GpuError::Input {
+            name: name.into(),
+            reason: format!("{} values, expected {}", values.len(), buf.size() / 4),
+        });
+    }
+    gpu.queue.write_buffer(buf, 0, bytemuck::cast_slice(values));
+    Ok(())
 }
