@@ -439,7 +439,7 @@ impl GpuDecoderGrad {
                     &conditions[k],
                     &dummy,
                     &level.o1,
-                    &split_dummy(gpu),
+                    &spare_output(gpu),
                 ],
             )?;
             fwd.push(Step::new(sk, g, linear_grid(n, 256)));
@@ -766,6 +766,6 @@ fn layer_resolution(i: usize) -> usize {
 }
 
 /// A 4-byte buffer bound where the forward SFT pass has no second output.
-fn split_dummy(gpu: &Gpu) -> wgpu::Buffer {
+fn spare_output(gpu: &Gpu) -> wgpu::Buffer {
     gpu.buffer("unused sft output", 4)
 }

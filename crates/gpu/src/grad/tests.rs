@@ -6,7 +6,8 @@ use gagavatar_splat::testscene::Rng;
 use super::conv::{conv_backward, wgrad_plan, ConvGrad};
 use super::layers::{act_backward, resize_backward, rms_norm_backward, Kept};
 use super::modconv::{modconv_backward, ModConvGrad, ModConvScratch};
-use super::optim::{adam, AdamBuffers, AdamStep};
+use super::optim::{adam, AdamBuffers, AdamStep, GpuAdam};
+use super::params::Param;
 use crate::conv::{Act, At, Conv, ConvWeights, Ops};
 use crate::device::Gpu;
 use crate::error::GpuError;
@@ -821,6 +822,7 @@ fn adam_matches_the_f64_update() {
                 &AdamBuffers {
                     grad: &gb,
                     param: &pb,
+                    off: 0,
                     m: &mb,
                     v: &vb,
                 },
@@ -848,6 +850,7 @@ fn adam_matches_the_f64_update() {
     let b = AdamBuffers {
         grad: &dummy,
         param: &dummy,
+        off: 0,
         m: &dummy,
         v: &dummy,
     };
@@ -900,4 +903,100 @@ fn bad_layers_and_short_scratch_are_errors() {
     assert!(matches!(short, Err(GpuError::Device(m)) if m.contains("rotated weight")));
     let short = conv_backward(&ops, &base, &scratch, &tiny);
     assert!(matches!(short, Err(GpuError::Device(m)) if m.contains("partial sum")));
+}
+
+/// [`GpuAdam`] over three parameters, two sharing a buffer at offsets, with their own rates
+/// and a decaying schedule, against the f64 update over four steps; the values around the
+/// parameters in the shared buffer stay untouched.
+#[test]
+fn gpu_adam_updates_each_parameter_at_its_offset_and_rate() {
+    let Some(g) = gpu() else { return };
+    let (b1, b2, eps) = (0.0, 0.99, 1e-8);
+    let mut rng = Rng::new(33);
+    // Buffer 0: [pad 3][p0: 10][pad 2][p1: 7][pad 1]; buffer 1: its gradients at the same
+    // places; buffer 2: p2 (20) and buffer 3 its gradient.
+    let shared = values(&mut rng, 23);
+    let own = values(&mut rng, 20);
+    let buffers = vec![
+        g.buffer_with("shared", &shared),
+        g.buffer("shared grads", 4 * 23),
+        g.buffer_with("own", &own),
+        g.buffer("own grad", 4 * 20),
+    ];
+    let params = vec![
+        Param {
+            key: "a.style_mlp.1.weight".into(),
+            value: 0,
+            grad: 1,
+            offset: 3,
+            len: 10,
+        },
+        Param {
+            key: "b.bias".into(),
+            value: 0,
+            grad: 1,
+            offset: 15,
+            len: 7,
+        },
+        Param {
+            key: "c.weight".into(),
+            value: 2,
+            grad: 3,
+            offset: 0,
+            len: 20,
+        },
+    ];
+    let lr0 = |k: &str| if k.contains("style_mlp") { 1e-4 } else { 1e-3 };
+    let mut opt = GpuAdam::new(g, (&buffers, &params), (b1, b2, eps), &lr0).unwrap();
+    let mut want: Vec<Vec<f64>> = vec![
+        shared.iter().map(|&v| v as f64).collect(),
+        own.iter().map(|&v| v as f64).collect(),
+    ];
+    let mut moments: Vec<(Vec<f64>, Vec<f64>)> = params
+        .iter()
+        .map(|p| (vec![0.0; p.len], vec![0.0; p.len]))
+        .collect();
+    for t in 1..=4u64 {
+        let factor = 1.0 - 0.2 * (t - 1) as f64;
+        let gs = values(&mut rng, 23);
+        let go = values(&mut rng, 20);
+        g.queue
+            .write_buffer(&buffers[1], 0, bytemuck::cast_slice(&gs));
+        g.queue
+            .write_buffer(&buffers[3], 0, bytemuck::cast_slice(&go));
+        g.submit(opt.step(g, factor).unwrap());
+        for (p, (m, v)) in params.iter().zip(&mut moments) {
+            let (vals, grads) = if p.value == 0 {
+                (&mut want[0], &gs)
+            } else {
+                (&mut want[1], &go)
+            };
+            let lr = lr0(&p.key) * factor;
+            for i in 0..p.len {
+                let gi = grads[p.offset + i] as f64;
+                m[i] = b1 * m[i] + (1.0 - b1) * gi;
+                v[i] = b2 * v[i] + (1.0 - b2) * gi * gi;
+                let denom = v[i].sqrt() / (1.0 - b2.powi(t as i32)).sqrt() + eps;
+                vals[p.offset + i] -= lr / (1.0 - b1.powi(t as i32)) * m[i] / denom;
+            }
+        }
+    }
+    for (bi, w) in [(0usize, &want[0]), (2, &want[1])] {
+        let got = g.read_f32(&buffers[bi], w.len()).unwrap();
+        let w32: Vec<f32> = w.iter().map(|&v| v as f32).collect();
+        assert_close(
+            &format!("buffer {bi} after 4 Adam steps"),
+            &w32,
+            &got,
+            ADAM_TOL,
+        );
+    }
+    let bad = vec![Param {
+        key: "x".into(),
+        value: 9,
+        grad: 1,
+        offset: 0,
+        len: 1,
+    }];
+    assert!(GpuAdam::new(g, (&buffers, &bad), (b1, b2, eps), &lr0).is_err());
 }
