@@ -1,5 +1,5 @@
-//! The gradients of the renderer's elementwise and small layers: activations, the x2 resizes
-//! and the mapping network's normalisation.
+//! The gradients of the renderer's elementwise and small layers: activations, the x2 resizes,
+//! the mapping network's normalisation, and of an L1 loss.
 
 use crate::conv::At;
 use crate::device::Gpu;
@@ -9,6 +9,7 @@ use crate::kernel::{linear_grid, Bind, Grid, Params, Step};
 const ACT_BACKWARD: &str = include_str!("../shaders/act_backward.wgsl");
 const RESIZE_BACKWARD: &str = include_str!("../shaders/resize_backward.wgsl");
 const RMS_NORM_BACKWARD: &str = include_str!("../shaders/rms_norm_backward.wgsl");
+const L1_GRAD: &str = include_str!("../shaders/l1_grad.wgsl");
 
 /// An activation and the value its backward reads (what the forward keeps).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -105,4 +106,29 @@ pub fn rms_norm_backward(
     let u = gpu.uniform("rms backward", &Params::new().u(n as u32).u(0).u(0).u(0));
     let g = gpu.bind(&k, &[&u, x, dy, dx])?;
     Ok(Step::new(k, g, Grid::Fixed([1, 1, 1])))
+}
+
+/// Records the gradient of `scale * sum |pred - target|` over `n` values with respect to
+/// `pred` into `out`: `scale * sign(pred - target)`, 0 where they are equal.
+pub fn l1_grad(gpu: &Gpu, n: usize, pred: At, target: At, scale: f32, out: At) -> Result<Step> {
+    let k = gpu.kernel(
+        "l1_grad",
+        L1_GRAD,
+        &[],
+        &[Bind::Uniform, Bind::Read, Bind::Read, Bind::ReadWrite],
+    )?;
+    let u = gpu.uniform(
+        "l1 grad",
+        &Params::new()
+            .u(n as u32)
+            .u(pred.off)
+            .u(target.off)
+            .u(out.off)
+            .f(scale)
+            .u(0)
+            .u(0)
+            .u(0),
+    );
+    let g = gpu.bind(&k, &[&u, pred.buf, target.buf, out.buf])?;
+    Ok(Step::new(k, g, linear_grid(n, 256)))
 }
