@@ -172,13 +172,13 @@ fn decoder_gradients_match_candle_autograd() {
 /// The whole renderer (U-Net, condition branches, decoder, sigmoid) on the GPU against
 /// candle's autograd through `StyleUNet` at the tiny preset: the output, the gradient of the
 /// splatted input and of every parameter the forward uses.
+/// The CPU renderer, its variables by key, and their values for the GPU.
+type SeededRenderer = (StyleUNet, Vec<(String, Var)>, HashMap<String, Vec<f32>>);
+
 /// The tiny renderer on the CPU with every weight a variable, drawn with variance 1 / fan-in
 /// (larger weights make the 20-odd layers' activations grow to thousands, where f32 rounding
 /// alone moves the output), and the same values by key for the GPU.
-fn seeded_renderer(
-    cfg: &ModelConfig,
-    seed: u64,
-) -> (StyleUNet, Vec<(String, Var)>, HashMap<String, Vec<f32>>) {
+fn seeded_renderer(cfg: &ModelConfig, seed: u64) -> SeededRenderer {
     let dev = Device::Cpu;
     let varmap = VarMap::new();
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
@@ -358,7 +358,7 @@ fn renderer_training_steps_follow_the_cpu() {
             "step {k}: L1 loss expected (CPU) {cpu_loss}, actual (GPU) {gpu_loss}"
         );
         eprintln!("step {k}: L1 loss CPU {cpu_loss}, GPU {gpu_loss}");
-        g.submit(&[loss_grad.clone()]);
+        g.submit(std::slice::from_ref(&loss_grad));
         g.submit(r.backward_steps());
         let factor = acfg.factor(k);
         g.submit(unet_adam.step(g, factor).unwrap());
