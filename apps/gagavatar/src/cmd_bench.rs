@@ -227,7 +227,8 @@ pub fn run(cmd: BenchCmd) -> Result<()> {
 
 pub use crate::procstat::peak_rss_mib;
 
-fn median(v: &mut [f64]) -> f64 {
+/// The median of `v` (sorted in place; the upper one of an even count).
+pub(crate) fn median(v: &mut [f64]) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     v[v.len() / 2]
 }

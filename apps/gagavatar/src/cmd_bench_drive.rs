@@ -18,6 +18,7 @@ use gagavatar_net::ModelConfig;
 use gagavatar_splat::testscene::{avatar_scene, Regime, Rng};
 use gagavatar_splat::Camera;
 
+use crate::cmd_bench::median;
 use crate::device_args::DeviceArgs;
 use gagavatar_avatar::{CpuDrive, Drive};
 
@@ -54,11 +55,6 @@ pub struct DriveBench {
 enum RegimeArg {
     Small,
     Large,
-}
-
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    v[v.len() / 2]
 }
 
 /// An avatar of the model's size: the benchmark scene's two lifted planes, its head points'

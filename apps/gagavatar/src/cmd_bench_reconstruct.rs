@@ -10,6 +10,7 @@ use gagavatar_gpu::reconstruct::{GpuReconstruct, STAGES};
 use gagavatar_net::model::GagAvatar;
 use gagavatar_net::ModelConfig;
 
+use crate::cmd_bench::median;
 use crate::device_args::DeviceArgs;
 
 #[derive(Debug, Args)]
@@ -32,11 +33,6 @@ pub struct ReconstructBench {
     /// only.
     #[arg(long)]
     json: Option<std::path::PathBuf>,
-}
-
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    v[v.len() / 2]
 }
 
 fn model(cfg: &ModelConfig, ckpt: Option<&std::path::Path>) -> Result<GagAvatar> {

@@ -14,6 +14,7 @@ use gagavatar_net::checkpoint::WeightData;
 use gagavatar_net::style_unet::{Noise, StyleUNet};
 use gagavatar_net::ModelConfig;
 
+use crate::cmd_bench::median;
 use crate::device_args::DeviceArgs;
 
 #[derive(Debug, Args)]
@@ -32,11 +33,6 @@ pub struct RendererGradBench {
     /// Also write the figures as JSON to this file; GPU only.
     #[arg(long)]
     json: Option<std::path::PathBuf>,
-}
-
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    v[v.len() / 2]
 }
 
 /// The renderer's seeded weights by key relative to `upsampler.`.

@@ -11,6 +11,7 @@
 
 use std::f32::consts::SQRT_2;
 
+use gagavatar_net::style_unet::noise_resolution;
 use gagavatar_net::ModelConfig;
 
 use crate::conv::{Act, At, Conv, ConvWeights, Ops};
@@ -23,12 +24,8 @@ use crate::tuning::Tuning;
 /// (row-major, any shape with the right element count).
 pub type WeightFn<'a> = dyn Fn(&str) -> Result<Vec<f32>> + 'a;
 
-/// Side of noise buffer `i`: 4, 8, 8, 16, 16, ...
-fn noise_resolution(i: usize) -> usize {
-    1 << ((i + 5) / 2)
-}
-
-fn get(weights: &WeightFn, key: &str, len: usize) -> Result<Vec<f32>> {
+/// The value of `upsampler.{key}`, checked to hold `len` values.
+pub(crate) fn get(weights: &WeightFn, key: &str, len: usize) -> Result<Vec<f32>> {
     let v = weights(key)?;
     if v.len() != len {
         return Err(GpuError::Weights(format!(

@@ -657,7 +657,7 @@ impl StyleGan2Decoder {
 }
 
 /// Side of noise buffer `i`: 4, 8, 8, 16, 16, ...
-fn noise_resolution(i: usize) -> usize {
+pub fn noise_resolution(i: usize) -> usize {
     1 << ((i + 5) / 2)
 }
 

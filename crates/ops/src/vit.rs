@@ -10,6 +10,7 @@ use candle_core::{
 };
 use rayon::prelude::*;
 
+use crate::conv::elem::SendPtr;
 use crate::storage::contiguous;
 
 /// Layer norm over the last dim of `x` with `weight` and `bias` (f32 or f64), two-pass.
@@ -181,20 +182,6 @@ struct AttentionQkvOp {
     scale: f32,
 }
 
-/// A pointer that parallel tasks write through at disjoint places.
-#[derive(Clone, Copy)]
-struct SharedOut(*mut f32);
-// SAFETY: each task writes only its own head's columns (see `AttentionQkvOp::cpu_fwd`).
-unsafe impl Send for SharedOut {}
-unsafe impl Sync for SharedOut {}
-
-impl SharedOut {
-    /// The element `i` places on (a method, so closures capture the whole `Send` wrapper).
-    fn at(&self, i: usize) -> *mut f32 {
-        self.0.wrapping_add(i)
-    }
-}
-
 impl CustomOp1 for AttentionQkvOp {
     fn name(&self) -> &'static str {
         "vit-attention-qkv"
@@ -220,7 +207,8 @@ impl CustomOp1 for AttentionQkvOp {
             return Ok((CpuStorage::F32(out), Shape::from((b, n, c))));
         }
         let rows = ATTN_ROWS.min(n);
-        let dst = SharedOut(out.as_mut_ptr());
+        // Each task writes only its own head's columns (see below).
+        let dst = SendPtr(out.as_mut_ptr());
         (0..b * h).into_par_iter().for_each_init(
             || vec![0f32; rows * n],
             |logits, task| {
@@ -261,7 +249,7 @@ impl CustomOp1 for AttentionQkvOp {
                             r,
                             d,
                             n,
-                            dst.at((bi * n + r0) * c + hi * d),
+                            dst.get().add((bi * n + r0) * c + hi * d),
                             1,
                             c as isize,
                             false,

@@ -99,18 +99,29 @@ impl ConvGrad<'_> {
     /// Floats of slice partial sums a backward needs (its `part` buffer; the weight's and the
     /// bias's sums reuse it one after the other).
     pub fn part_floats(&self, ops: &Ops) -> usize {
-        let p = wgrad_plan(
+        part_floats(
             ops.tuning.conv,
-            self.cin,
-            self.cout,
-            self.h * self.w,
-            self.k,
-        );
-        let bias = self
-            .grad_bias
-            .map_or(0, |_| (self.h * self.w).div_ceil(ROW_SLICE) * self.cout);
-        (p.slices * self.cout * self.cin * self.k * self.k).max(bias)
+            (self.cin, self.cout, self.h * self.w, self.k),
+            self.grad_bias.is_some(),
+        )
     }
+}
+
+/// Floats of slice partial sums the backward of a `cin -> cout` layer of `hw` pixels and
+/// kernel `k` needs, with a bias or noise weight (row sums) or not; see
+/// [`ConvGrad::part_floats`]. For sizing a scratch shared by several layers.
+pub fn part_floats(
+    tile: ConvTile,
+    (cin, cout, hw, k): (usize, usize, usize, usize),
+    row_sums: bool,
+) -> usize {
+    let p = wgrad_plan(tile, cin, cout, hw, k);
+    let rows = if row_sums {
+        hw.div_ceil(ROW_SLICE) * cout
+    } else {
+        0
+    };
+    (p.slices * cout * cin * k * k).max(rows)
 }
 
 pub(crate) fn fits(what: &str, buf: &wgpu::Buffer, floats: usize) -> Result<()> {

@@ -12,27 +12,23 @@
 
 use std::f32::consts::SQRT_2;
 
+use gagavatar_net::style_unet::noise_resolution;
 use gagavatar_net::ModelConfig;
 
-use super::conv::{conv_backward, row_sums, ConvGrad};
+use super::conv::{conv_backward, part_floats, row_sums, ConvGrad};
 use super::layers::{act_backward, resize_backward, rms_norm_backward, Kept};
 use super::modconv::{modconv_backward, ModConvGrad, ModConvScratch};
 pub use super::params::Param;
-use super::params::{get, Store};
+use super::params::{Packed, Store};
 use crate::conv::{Act, At, Conv, Ops};
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
 use crate::kernel::{linear_grid, Bind, Params, Step};
-use crate::renderer::WeightFn;
+use crate::renderer::{get, WeightFn};
 use crate::tuning::Tuning;
 
 const ENERGY: &str = include_str!("../shaders/energy.wgsl");
 const SFT: &str = include_str!("../shaders/sft.wgsl");
-
-/// Side of noise map `i`: 4, 8, 8, 16, 16, ...
-fn noise_resolution(i: usize) -> usize {
-    1 << ((i + 5) / 2)
-}
 
 /// One modulated convolution's buffers and offsets.
 struct ModLayer {
@@ -86,22 +82,10 @@ impl GpuDecoderGrad {
         let dc = |r: usize| cfg.decoder_channels(r);
         let sd = cfg.style_dim;
         let dp = "stylegan_decoder";
-        let mut st = Store {
-            gpu,
-            buffers: Vec::new(),
-            params: Vec::new(),
-        };
-        // The shared vectors: (key, values) pushed in order; styles and factors reserved.
-        let mut vecs_host: Vec<f32> = Vec::new();
-        let mut vec_params: Vec<(String, usize, usize)> = Vec::new();
-        let mut push_vec = |host: &mut Vec<f32>, key: Option<String>, v: &[f32]| -> u32 {
-            let at = host.len();
-            host.extend_from_slice(v);
-            if let Some(key) = key {
-                vec_params.push((key, at, v.len()));
-            }
-            at as u32
-        };
+        let mut st = Store::new(gpu);
+        // The shared vectors: biases and noise weights, then the styles and demodulation
+        // factors (reserved: kernels write them).
+        let mut vecs_host = Packed::default();
 
         let mut mlp = Vec::with_capacity(cfg.style_mlp_layers);
         for i in 0..cfg.style_mlp_layers {
@@ -123,12 +107,10 @@ impl GpuDecoderGrad {
         );
         // Modulated layers in the forward's order: style_conv1, to_rgb1, then per level the
         // two style convs and the to_rgb.
-        let mut mod_w: Vec<f32> = Vec::new();
-        let mut mod_b: Vec<f32> = Vec::new();
-        let mut mod_keys: Vec<(String, usize, usize)> = Vec::new();
+        let (mut mod_w, mut mod_b) = (Packed::default(), Packed::default());
         let mut layers: Vec<ModLayer> = Vec::new();
         let mut load = |st: &mut Store,
-                        host: &mut Vec<f32>,
+                        host: &mut Packed,
                         key: &str,
                         (cin, cout, k): (usize, usize, usize),
                         demodulate: bool|
@@ -136,21 +118,24 @@ impl GpuDecoderGrad {
             let mc = format!("{key}.modulated_conv");
             let w = get(weights, &format!("{mc}.weight"), cout * cin * k * k)?;
             let (wv, wg) = st.param(&format!("{mc}.weight"), w);
-            let row = mod_b.len();
-            mod_w.extend(get(weights, &format!("{mc}.modulation.weight"), cin * sd)?);
-            mod_b.extend(get(weights, &format!("{mc}.modulation.bias"), cin)?);
-            mod_keys.push((format!("{mc}.modulation"), row, cin));
-            let bias = push_vec(
-                host,
-                Some(format!("{key}.bias")),
-                &get(weights, &format!("{key}.bias"), cout)?,
+            let mk = format!("{mc}.modulation");
+            mod_w.push(
+                format!("{mk}.weight"),
+                &get(weights, &format!("{mk}.weight"), cin * sd)?,
             );
+            let row = mod_b.push(
+                format!("{mk}.bias"),
+                &get(weights, &format!("{mk}.bias"), cin)?,
+            );
+            let bias = host.push(
+                format!("{key}.bias"),
+                &get(weights, &format!("{key}.bias"), cout)?,
+            ) as u32;
             let noise_weight = if demodulate {
-                Some(push_vec(
-                    host,
-                    Some(format!("{key}.weight")),
+                Some(host.push(
+                    format!("{key}.weight"),
                     &get(weights, &format!("{key}.weight"), 1)?,
-                ))
+                ) as u32)
             } else {
                 None
             };
@@ -197,47 +182,17 @@ impl GpuDecoderGrad {
                 false,
             )?);
         }
-        let styles_rows = mod_b.len();
-        let styles_at = vecs_host.len();
-        vecs_host.resize(styles_at + styles_rows, 0.0);
+        let styles_rows = mod_b.host.len();
+        let styles_at = vecs_host.reserve(styles_rows);
         for l in &mut layers {
             l.style += styles_at as u32;
             if l.demod.is_some() {
-                l.demod = Some(vecs_host.len() as u32);
-                vecs_host.resize(vecs_host.len() + l.cout, 0.0);
+                l.demod = Some(vecs_host.reserve(l.cout) as u32);
             }
         }
-        let vecs = st.add("decoder vectors", &vecs_host);
-        let grad_vecs = st.zeros("decoder vector gradients", vecs_host.len());
-        for (key, at, len) in vec_params {
-            st.params.push(Param {
-                key,
-                value: vecs,
-                grad: grad_vecs,
-                offset: at,
-                len,
-            });
-        }
-        let mod_wb = st.add("style modulations", &mod_w);
-        let mod_wg = st.zeros("style modulation gradients", mod_w.len());
-        let mod_bb = st.add("style modulation biases", &mod_b);
-        let mod_bg = st.zeros("style modulation bias gradients", mod_b.len());
-        for (key, row, cin) in mod_keys {
-            st.params.push(Param {
-                key: format!("{key}.weight"),
-                value: mod_wb,
-                grad: mod_wg,
-                offset: row * sd,
-                len: cin * sd,
-            });
-            st.params.push(Param {
-                key: format!("{key}.bias"),
-                value: mod_bb,
-                grad: mod_bg,
-                offset: row,
-                len: cin,
-            });
-        }
+        let (vecs, grad_vecs) = st.packed("decoder vectors", vecs_host);
+        let (mod_wb, mod_wg) = st.packed("style modulations", mod_w);
+        let (mod_bb, mod_bg) = st.packed("style modulation biases", mod_b);
         let mut noise_host = Vec::new();
         let mut noise_at = Vec::new();
         for i in 0..2 * levels + 1 {
@@ -488,23 +443,8 @@ impl GpuDecoderGrad {
         for (i, l) in layers.iter().enumerate() {
             let r = layer_resolution(i);
             flipped_need = flipped_need.max(l.cin * l.cout * l.k * l.k);
-            let g = ConvGrad {
-                cin: l.cin,
-                cout: l.cout,
-                h: r,
-                w: r,
-                k: l.k,
-                input: At::new(&dummy),
-                weight: &dummy,
-                grad_out: At::new(&dummy),
-                grad_input: None,
-                grad_weight: At::new(&dummy),
-                grad_bias: Some(At::new(&dummy)),
-                accumulate: false,
-            };
-            part_need = part_need
-                .max(g.part_floats(&ops))
-                .max(l.cout * (r * r).div_ceil(4096));
+            // Row sums for the bias and, in the style convs, the noise weight.
+            part_need = part_need.max(part_floats(tuning.conv, (l.cin, l.cout, r * r, l.k), true));
         }
         part_need = part_need.max(styles_rows * sd).max(sd * sd);
         flipped_need = flipped_need.max(styles_rows * sd).max(sd * sd);

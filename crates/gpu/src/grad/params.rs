@@ -1,8 +1,7 @@
 //! Where a trained module keeps its parameters and their gradients on the GPU.
 
 use crate::device::Gpu;
-use crate::error::{GpuError, Result};
-use crate::renderer::WeightFn;
+use crate::error::Result;
 
 /// Where a parameter's values and gradient live: `len` floats at `offset` of buffer
 /// `value` / `grad` (indices into the module's buffers).
@@ -23,7 +22,57 @@ pub(crate) struct Store<'g> {
     pub params: Vec<Param>,
 }
 
-impl Store<'_> {
+/// Several parameters' values packed into one buffer (a vector buffer of biases, a stacked
+/// layer), with untrained values allowed between them; [`Store::packed`] uploads it.
+#[derive(Default)]
+pub(crate) struct Packed {
+    pub host: Vec<f32>,
+    keys: Vec<(String, usize, usize)>,
+}
+
+impl Packed {
+    /// Appends the values of the parameter `key`; returns their offset.
+    pub fn push(&mut self, key: String, v: &[f32]) -> usize {
+        let at = self.host.len();
+        self.host.extend_from_slice(v);
+        self.keys.push((key, at, v.len()));
+        at
+    }
+
+    /// Appends `n` zeros that no parameter owns (values kernels write); returns their offset.
+    pub fn reserve(&mut self, n: usize) -> usize {
+        let at = self.host.len();
+        self.host.resize(at + n, 0.0);
+        at
+    }
+}
+
+impl<'g> Store<'g> {
+    pub fn new(gpu: &'g Gpu) -> Self {
+        Self {
+            gpu,
+            buffers: Vec::new(),
+            params: Vec::new(),
+        }
+    }
+
+    /// Uploads `p` and a zeroed gradient buffer of its size; its parameters point into both at
+    /// the same offsets. Returns the two buffers' indices.
+    pub fn packed(&mut self, label: &str, p: Packed) -> (usize, usize) {
+        let value = self.add(label, &p.host);
+        let grad = self.zeros(label, p.host.len());
+        for (key, offset, len) in p.keys {
+            self.params.push(Param {
+                key,
+                value,
+                grad,
+                offset,
+                len,
+            });
+        }
+        (value, grad)
+    }
+
     pub fn add(&mut self, label: &str, data: &[f32]) -> usize {
         self.buffers.push(self.gpu.buffer_with(label, data));
         self.buffers.len() - 1
@@ -45,17 +94,6 @@ impl Store<'_> {
         });
         (v, g)
     }
-}
-
-pub(crate) fn get(weights: &WeightFn, key: &str, len: usize) -> Result<Vec<f32>> {
-    let v = weights(key)?;
-    if v.len() != len {
-        return Err(GpuError::Weights(format!(
-            "upsampler.{key} has {} values, expected {len}",
-            v.len()
-        )));
-    }
-    Ok(v)
 }
 
 /// Every parameter's gradient, read back, by key.

@@ -10,15 +10,15 @@
 
 use gagavatar_net::ModelConfig;
 
-use super::conv::{conv_backward, ConvGrad};
+use super::conv::{conv_backward, part_floats, ConvGrad};
 use super::decoder::GpuDecoderGrad;
 use super::layers::{act_backward, resize_backward, Kept};
-use super::params::{get, read_grads, Param, Store};
+use super::params::{read_grads, Packed, Param, Store};
 use crate::conv::{Act, At, Conv, Ops};
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
 use crate::kernel::{linear_grid, Bind, Params, Step};
-use crate::renderer::WeightFn;
+use crate::renderer::{get, WeightFn};
 use crate::tuning::Tuning;
 
 const SIGMOID: &str = include_str!("../shaders/sigmoid.wgsl");
@@ -94,13 +94,8 @@ impl GpuRendererGrad {
         let u = |r: usize| cfg.unet_channels(r);
         let dc = |r: usize| cfg.decoder_channels(r);
         let sd = cfg.style_dim;
-        let mut st = Store {
-            gpu,
-            buffers: Vec::new(),
-            params: Vec::new(),
-        };
-        let mut vecs_host: Vec<f32> = Vec::new();
-        let mut vec_keys: Vec<(String, usize, usize)> = Vec::new();
+        let mut st = Store::new(gpu);
+        let mut vecs_host = Packed::default();
         let mut conv = |st: &mut Store,
                         key: &str,
                         (cin, cout, k): (usize, usize, usize),
@@ -111,10 +106,8 @@ impl GpuRendererGrad {
                 get(weights, &format!("{key}.weight"), cout * cin * k * k)?,
             );
             let bias = if bias {
-                let at = vecs_host.len();
-                vecs_host.extend(get(weights, &format!("{key}.bias"), cout)?);
-                vec_keys.push((format!("{key}.bias"), at, cout));
-                Some(at as u32)
+                let b = get(weights, &format!("{key}.bias"), cout)?;
+                Some(vecs_host.push(format!("{key}.bias"), &b) as u32)
             } else {
                 None
             };
@@ -166,17 +159,7 @@ impl GpuRendererGrad {
             let shift = branch("condition_shift")?;
             branches.push((scale, shift));
         }
-        let vecs = st.add("u-net biases", &vecs_host);
-        let grad_vecs = st.zeros("u-net bias gradients", vecs_host.len());
-        for (key, at, len) in vec_keys {
-            st.params.push(Param {
-                key,
-                value: vecs,
-                grad: grad_vecs,
-                offset: at,
-                len,
-            });
-        }
+        let (vecs, grad_vecs) = st.packed("u-net biases", vecs_host);
 
         // Scratch: split-K sums of the forward and backward convolutions, rotated weights and
         // the weight gradients' partial sums.
@@ -201,33 +184,16 @@ impl GpuRendererGrad {
             ]);
         }
         let (mut split_need, mut flipped_need, mut part_need) = (1, 1, 1);
-        let probe = Ops {
-            gpu,
-            tuning,
-            vecs: &dummy,
-            dummy: &dummy,
-            split_scratch: &dummy,
-        };
         for (l, r) in &layers {
             split_need = split_need
                 .max(Ops::split_need(tuning, l.cin, l.cout, *r, *r, l.k))
                 .max(Ops::split_need(tuning, l.cout, l.cin, *r, *r, l.k));
             flipped_need = flipped_need.max(l.cin * l.cout * l.k * l.k);
-            let g = ConvGrad {
-                cin: l.cin,
-                cout: l.cout,
-                h: *r,
-                w: *r,
-                k: l.k,
-                input: At::new(&dummy),
-                weight: &dummy,
-                grad_out: At::new(&dummy),
-                grad_input: None,
-                grad_weight: At::new(&dummy),
-                grad_bias: l.bias.map(|_| At::new(&dummy)),
-                accumulate: false,
-            };
-            part_need = part_need.max(g.part_floats(&probe));
+            part_need = part_need.max(part_floats(
+                tuning.conv,
+                (l.cin, l.cout, r * r, l.k),
+                l.bias.is_some(),
+            ));
         }
         let split = gpu.buffer("split-K partial sums", 4 * split_need as u64);
         let flipped = gpu.buffer("rotated weights", 4 * flipped_need as u64);

@@ -41,15 +41,40 @@ fn rel_check(what: &str, want: &[f32], got: &[f32], rel: f64) {
     assert_close(what, want, got, rel * scale);
 }
 
-#[test]
-fn decoder_gradients_match_candle_autograd() {
-    let Some(g) = gpu() else { return };
-    let cfg = ModelConfig::tiny();
+/// How a test draws a weight: `(centre, half width)` of a uniform distribution, from its key,
+/// shape and element count.
+type Spread = fn(&str, &[usize], usize) -> (f64, f64);
+
+/// Variance 1 / fan-in (larger weights make the renderer's 20-odd layers' activations grow to
+/// thousands, where f32 rounding alone moves the output); modulation biases near 1.
+fn fan_in(key: &str, dims: &[usize], n: usize) -> (f64, f64) {
+    if key.ends_with("modulation.bias") {
+        (1.0, 0.1)
+    } else if key.contains(".noises.") || key.ends_with("constant_input.weight") {
+        (0.0, 1.0)
+    } else if dims.len() >= 2 {
+        let out = if dims[0] > 1 { dims[0] } else { dims[1] };
+        (0.0, (3.0 / (n / out) as f64).sqrt())
+    } else {
+        (0.0, 0.1)
+    }
+}
+
+/// Modulation biases near 1 (StyleGAN2's initialisation), everything else within 0.5 of 0:
+/// enough for the decoder alone.
+fn wide(key: &str, _dims: &[usize], _n: usize) -> (f64, f64) {
+    if key.ends_with("modulation.bias") {
+        (1.0, 0.5)
+    } else {
+        (0.0, 0.5)
+    }
+}
+
+/// Every variable of `varmap` by key, drawn as `spread` says, and their values by key for the
+/// GPU.
+fn seed_vars(varmap: &VarMap, seed: u64, spread: Spread) -> SeededVars {
     let dev = Device::Cpu;
-    let varmap = VarMap::new();
-    let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
-    let decoder = StyleGan2Decoder::new(&cfg, vb.pp("stylegan_decoder")).unwrap();
-    let mut rng = Rng::new(61);
+    let mut rng = Rng::new(seed);
     let mut host: HashMap<String, Vec<f32>> = HashMap::new();
     let mut vars: Vec<(String, Var)> = varmap
         .data()
@@ -60,19 +85,36 @@ fn decoder_gradients_match_candle_autograd() {
         .collect();
     vars.sort_by(|a, b| a.0.cmp(&b.0));
     for (key, var) in &vars {
-        // Modulation biases near 1 (StyleGAN2's initialisation), the rest small.
-        let centre = if key.ends_with("modulation.bias") {
-            1.0
-        } else {
-            0.0
-        };
+        let (centre, half) = spread(key, var.dims(), var.elem_count());
         let v: Vec<f32> = (0..var.elem_count())
-            .map(|_| (centre + 0.5 * rng.range(-1.0, 1.0)) as f32)
+            .map(|_| (centre + half * rng.range(-1.0, 1.0)) as f32)
             .collect();
         var.set(&Tensor::from_vec(v.clone(), var.shape(), &dev).unwrap())
             .unwrap();
         host.insert(key.clone(), v);
     }
+    (vars, host)
+}
+
+/// The GPU modules' weight lookup over seeded values.
+fn lookup(host: &HashMap<String, Vec<f32>>) -> impl Fn(&str) -> Result<Vec<f32>, GpuError> + '_ {
+    |key| {
+        host.get(key)
+            .cloned()
+            .ok_or_else(|| GpuError::Weights(format!("no {key}")))
+    }
+}
+
+#[test]
+fn decoder_gradients_match_candle_autograd() {
+    let Some(g) = gpu() else { return };
+    let cfg = ModelConfig::tiny();
+    let dev = Device::Cpu;
+    let varmap = VarMap::new();
+    let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
+    let decoder = StyleGan2Decoder::new(&cfg, vb.pp("stylegan_decoder")).unwrap();
+    let (vars, host) = seed_vars(&varmap, 61, wide);
+    let mut rng = Rng::new(62);
     let levels = cfg.renderer_levels();
     let sd = cfg.style_dim;
     let code: Vec<f32> = (0..sd).map(|_| rng.range(-1.0, 1.0) as f32).collect();
@@ -113,11 +155,7 @@ fn decoder_gradients_match_candle_autograd() {
     let grads = (&rgb * gt).unwrap().sum_all().unwrap().backward().unwrap();
 
     // GPU.
-    let weights = |key: &str| -> Result<Vec<f32>, GpuError> {
-        host.get(key)
-            .cloned()
-            .ok_or_else(|| GpuError::Weights(format!("no {key}")))
-    };
+    let weights = lookup(&host);
     let dec = GpuDecoderGrad::new(g, &Tuning::default(), &cfg, &weights).unwrap();
     g.queue
         .write_buffer(&dec.code, 0, bytemuck::cast_slice(&code));
@@ -175,43 +213,16 @@ fn decoder_gradients_match_candle_autograd() {
 /// The CPU renderer, its variables by key, and their values for the GPU.
 type SeededRenderer = (StyleUNet, Vec<(String, Var)>, HashMap<String, Vec<f32>>);
 
-/// The tiny renderer on the CPU with every weight a variable, drawn with variance 1 / fan-in
-/// (larger weights make the 20-odd layers' activations grow to thousands, where f32 rounding
-/// alone moves the output), and the same values by key for the GPU.
+/// Variables by key, and their values by key.
+type SeededVars = (Vec<(String, Var)>, HashMap<String, Vec<f32>>);
+
+/// The tiny renderer on the CPU with every weight a variable, drawn by [`fan_in`].
 fn seeded_renderer(cfg: &ModelConfig, seed: u64) -> SeededRenderer {
     let dev = Device::Cpu;
     let varmap = VarMap::new();
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
     let unet = StyleUNet::new(cfg, vb).unwrap();
-    let mut rng = Rng::new(seed);
-    let mut host: HashMap<String, Vec<f32>> = HashMap::new();
-    let mut vars: Vec<(String, Var)> = varmap
-        .data()
-        .lock()
-        .unwrap()
-        .iter()
-        .map(|(k, v)| (k.clone(), v.clone()))
-        .collect();
-    vars.sort_by(|a, b| a.0.cmp(&b.0));
-    for (key, var) in &vars {
-        let dims = var.dims();
-        let (centre, half) = if key.ends_with("modulation.bias") {
-            (1.0, 0.1)
-        } else if key.contains(".noises.") || key.ends_with("constant_input.weight") {
-            (0.0, 1.0)
-        } else if dims.len() >= 2 {
-            let out = if dims[0] > 1 { dims[0] } else { dims[1] };
-            (0.0, (3.0 / (var.elem_count() / out) as f64).sqrt())
-        } else {
-            (0.0, 0.1)
-        };
-        let v: Vec<f32> = (0..var.elem_count())
-            .map(|_| (centre + half * rng.range(-1.0, 1.0)) as f32)
-            .collect();
-        var.set(&Tensor::from_vec(v.clone(), var.shape(), &dev).unwrap())
-            .unwrap();
-        host.insert(key.clone(), v);
-    }
+    let (vars, host) = seed_vars(&varmap, seed, fan_in);
     (unet, vars, host)
 }
 
@@ -239,11 +250,7 @@ fn renderer_gradients_match_candle_autograd() {
     let gt = Tensor::from_vec(grad_out.clone(), (1, 3, s, s), &dev).unwrap();
     let grads = (&y * gt).unwrap().sum_all().unwrap().backward().unwrap();
 
-    let weights = |key: &str| -> Result<Vec<f32>, GpuError> {
-        host.get(key)
-            .cloned()
-            .ok_or_else(|| GpuError::Weights(format!("no {key}")))
-    };
+    let weights = lookup(&host);
     let r = GpuRendererGrad::new(g, &Tuning::default(), &cfg, &weights).unwrap();
     g.queue
         .write_buffer(&r.input, 0, bytemuck::cast_slice(&input));
@@ -313,11 +320,7 @@ fn renderer_training_steps_follow_the_cpu() {
     let x = Tensor::from_vec(input.clone(), (1, cfg.color_dim, s, s), &dev).unwrap();
     let t = Tensor::from_vec(target.clone(), (1, 3, s, s), &dev).unwrap();
 
-    let weights = |key: &str| -> Result<Vec<f32>, GpuError> {
-        host.get(key)
-            .cloned()
-            .ok_or_else(|| GpuError::Weights(format!("no {key}")))
-    };
+    let weights = lookup(&host);
     let r = GpuRendererGrad::new(g, &Tuning::default(), &cfg, &weights).unwrap();
     r.set_input(g, &input).unwrap();
     let target_buf = g.buffer_with("target", &target);

@@ -11,6 +11,7 @@ use super::params::Param;
 use crate::conv::{Act, At, Conv, ConvWeights, Ops};
 use crate::device::Gpu;
 use crate::error::GpuError;
+use crate::kernel::Step;
 use crate::testutil::{assert_close, gpu, max_diff};
 use crate::tuning::{ConvTile, Tuning};
 
@@ -132,9 +133,7 @@ fn gpu_grads(
         grad_bias: Some(At::off(&dbb, go)),
         accumulate: prior.is_some(),
     };
-    let flipped = g.buffer("flipped", 4 * c.flipped_floats() as u64);
-    let part = g.buffer("part", 4 * c.part_floats(&ops) as u64);
-    let steps = conv_backward(&ops, &c, &flipped, &part).expect("record the backward");
+    let steps = backward_alone(g, &ops, &c);
     g.submit(&steps);
     let read =
         |b: &wgpu::Buffer, n: usize| g.read_f32(b, go + n).expect("read back")[go..].to_vec();
@@ -143,6 +142,13 @@ fn gpu_grads(
         read(&dwb, l.w_len()),
         read(&dbb, l.cout),
     )
+}
+
+/// `c`'s backward recorded with scratch of its own (the recorded steps keep it alive).
+fn backward_alone(g: &Gpu, ops: &Ops, c: &ConvGrad) -> Vec<Step> {
+    let flipped = g.buffer("flipped", 4 * c.flipped_floats() as u64);
+    let part = g.buffer("part", 4 * c.part_floats(ops) as u64);
+    conv_backward(ops, c, &flipped, &part).expect("record the backward")
 }
 
 /// candle's gradients of `sum(G * (conv(X, W) + B))` (so dZ = G), f32 on the CPU.
@@ -419,9 +425,7 @@ fn conv_and_activation_gradients_match_f64_finite_differences() {
             grad_bias: Some(At::new(&dbb)),
             accumulate: false,
         };
-        let flipped = g.buffer("flipped", 4 * c.flipped_floats() as u64);
-        let part = g.buffer("part", 4 * c.part_floats(&ops) as u64);
-        steps.extend(conv_backward(&ops, &c, &flipped, &part).unwrap());
+        steps.extend(backward_alone(g, &ops, &c));
         g.submit(&steps);
         let dx = g.read_f32(&dxb, l.x_len()).unwrap();
         let dw = g.read_f32(&dwb, l.w_len()).unwrap();
@@ -755,9 +759,7 @@ fn modulated_conv_gradients_match_the_cpu_layer() {
             grad_bias: Some(At::new(&dmbb)),
             accumulate: false,
         };
-        let flipped2 = g.buffer("flipped", 4 * lin.flipped_floats() as u64);
-        let part2 = g.buffer("part", 4 * lin.part_floats(&ops) as u64);
-        steps.extend(conv_backward(&ops, &lin, &flipped2, &part2).unwrap());
+        steps.extend(backward_alone(g, &ops, &lin));
         g.submit(&steps);
 
         let what = format!("modulated conv k{k} demodulate={demodulate}");

@@ -202,7 +202,7 @@ impl<'a> Ctx<'a> {
         }
     }
 
-    /// [`Ops::conv`], with the split-K scratch checked (or, measuring, only sized).
+    /// [`Ops::conv`] (or, measuring, only the split-K scratch sized).
     pub fn conv(&self, c: &Conv) -> Result<Vec<Step>> {
         self.conv_with(c, self.vecs)
     }
@@ -214,13 +214,7 @@ impl<'a> Ctx<'a> {
             m.set(m.get().max(need));
             return Ok(Vec::new());
         }
-        if 4 * need as u64 > self.scratch.size() {
-            return Err(GpuError::Device(format!(
-                "split-K scratch of {} bytes for a layer that needs {}",
-                self.scratch.size(),
-                4 * need
-            )));
-        }
+        // `Ops::conv` checks the scratch's size.
         Ops { vecs, ..self.ops() }.conv(c)
     }
 }
