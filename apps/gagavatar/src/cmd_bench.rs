@@ -225,13 +225,8 @@ pub fn run(cmd: BenchCmd) -> Result<()> {
     }
 }
 
+use crate::bench_stats::median;
 pub use crate::procstat::peak_rss_mib;
-
-/// The median of `v` (sorted in place; the upper one of an even count).
-pub(crate) fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    v[v.len() / 2]
-}
 
 fn bench_splat(args: SplatBench) -> Result<()> {
     let threads = args.threads.unwrap_or_else(num_cpus);

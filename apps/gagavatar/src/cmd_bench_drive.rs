@@ -18,7 +18,7 @@ use gagavatar_net::ModelConfig;
 use gagavatar_splat::testscene::{avatar_scene, Regime, Rng};
 use gagavatar_splat::Camera;
 
-use crate::cmd_bench::median;
+use crate::bench_stats::median;
 use crate::device_args::DeviceArgs;
 use gagavatar_avatar::{CpuDrive, Drive};
 

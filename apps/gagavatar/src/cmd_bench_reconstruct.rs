@@ -10,7 +10,7 @@ use gagavatar_gpu::reconstruct::{GpuReconstruct, STAGES};
 use gagavatar_net::model::GagAvatar;
 use gagavatar_net::ModelConfig;
 
-use crate::cmd_bench::median;
+use crate::bench_stats::median;
 use crate::device_args::DeviceArgs;
 
 #[derive(Debug, Args)]

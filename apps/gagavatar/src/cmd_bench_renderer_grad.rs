@@ -14,7 +14,7 @@ use gagavatar_net::checkpoint::WeightData;
 use gagavatar_net::style_unet::{Noise, StyleUNet};
 use gagavatar_net::ModelConfig;
 
-use crate::cmd_bench::median;
+use crate::bench_stats::median;
 use crate::device_args::DeviceArgs;
 
 #[derive(Debug, Args)]

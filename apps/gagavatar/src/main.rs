@@ -2,6 +2,7 @@
 //! parsing, progress and file handling here, the work in the library crates.
 
 mod animate;
+mod bench_stats;
 mod cmd_bench;
 mod cmd_bench_drive;
 mod cmd_bench_reconstruct;
