@@ -4,12 +4,13 @@
 //! and a per-stage time split.
 
 pub use crate::progress::{progress, spinner};
+use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use gagavatar_avatar::{Avatar, Drive, DriveTimes, Engine, EngineConfig, FlameSource, FrameCodes};
+use gagavatar_avatar::{Avatar, Drive, DriveTimes, Engine, EngineConfig, FlameSource};
 use gagavatar_flame::TrackedFrame;
 use gagavatar_net::style_unet::Noise;
 use gagavatar_video::{VideoOptions, VideoWriter};
@@ -282,24 +283,6 @@ impl Session {
     pub fn image_size(&self) -> usize {
         self.avatar.image_size()
     }
-
-    /// Renders a batch of (record, camera): RGB u8 frames (HWC). `names` name the records in
-    /// errors.
-    pub fn render(
-        &mut self,
-        records: &[&TrackedFrame],
-        names: &[String],
-        transforms: &[[[f64; 4]; 3]],
-    ) -> Result<Vec<Vec<u8>>> {
-        let mut frames: Vec<(FrameCodes, [[f64; 4]; 3])> = Vec::with_capacity(records.len());
-        for ((r, name), tm) in records.iter().zip(names).zip(transforms) {
-            let codes = self.avatar.codes(r, &format!("driver frame `{name}`"))?;
-            frames.push((codes, *tm));
-        }
-        let out = self.drive.render_batch(&frames)?;
-        self.timings.drive = self.drive.times();
-        Ok(out)
-    }
 }
 
 /// One output frame to render: the expression record, a name for errors, the camera.
@@ -313,10 +296,11 @@ pub struct FrameJob<'a> {
 const ENCODE_QUEUE: usize = 4;
 
 impl Session {
-    /// Renders `jobs` in batches into a video at `output` (format by extension), `decorate`
-    /// turning frame `i`'s rendered image into the written one (e.g. side by side with its
-    /// driver); `width` is the written width. Progress bar, Ctrl-C check between batches,
-    /// encode time in the timings.
+    /// Renders `jobs` into a video at `output` (format by extension), `decorate` turning frame
+    /// `i`'s rendered image into the written one (e.g. side by side with its driver); `width`
+    /// is the written width. The CPU renders `batch` frames at a time; a GPU streams them (one
+    /// rendering while the last is read back, decorated and queued for the encoder). Progress
+    /// bar, Ctrl-C check per frame, encode time in the timings.
     #[allow(clippy::too_many_arguments)]
     pub fn render_video(
         &mut self,
@@ -347,26 +331,38 @@ impl Session {
                 Ok((writer, spent))
             });
             let rendered = (|| -> Result<()> {
-                for (c, chunk) in jobs.chunks(batch.max(1)).enumerate() {
-                    crate::check_interrupt()?;
-                    let records: Vec<_> = chunk.iter().map(|j| j.record).collect();
-                    let names: Vec<String> = chunk.iter().map(|j| j.name.clone()).collect();
-                    let transforms: Vec<_> = chunk.iter().map(|j| j.transform).collect();
-                    for (k, img) in self
-                        .render(&records, &names, &transforms)?
-                        .into_iter()
-                        .enumerate()
-                    {
-                        let frame = decorate(c * batch.max(1) + k, img)?;
+                let mut frames = Vec::with_capacity(jobs.len());
+                for j in jobs {
+                    let codes = self
+                        .avatar
+                        .codes(j.record, &format!("driver frame `{}`", j.name))?;
+                    frames.push((codes, j.transform));
+                }
+                // The first error of the per-frame work (Ctrl-C, decorating) stops the stream
+                // and is the result.
+                let mut failed: Option<anyhow::Error> = None;
+                let mut each = |k: usize, img: Vec<u8>| -> ControlFlow<()> {
+                    let sent = crate::check_interrupt()
+                        .and_then(|()| decorate(k, img))
+                        .map(|frame| tx.send(frame).is_ok());
+                    match sent {
+                        Ok(true) => {
+                            bar.inc(1);
+                            ControlFlow::Continue(())
+                        }
                         // A closed channel means the encoder stopped on an error, which its
                         // join below reports.
-                        if tx.send(frame).is_err() {
-                            return Ok(());
+                        Ok(false) => ControlFlow::Break(()),
+                        Err(e) => {
+                            failed = Some(e);
+                            ControlFlow::Break(())
                         }
-                        bar.inc(1);
                     }
-                }
-                Ok(())
+                };
+                let streamed = self.drive.render_stream(&frames, batch, &mut each);
+                self.timings.drive = self.drive.times();
+                streamed?;
+                failed.map_or(Ok(()), Err)
             })();
             drop(tx);
             let encoded = encoder

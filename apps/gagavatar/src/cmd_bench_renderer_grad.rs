@@ -49,7 +49,7 @@ pub fn bench_renderer_grad(a: RendererGradBench) -> Result<()> {
     let cfg =
         ModelConfig::preset(&a.preset).with_context(|| format!("unknown preset `{}`", a.preset))?;
     crate::cmd_track::set_threads(a.threads);
-    let gpu = a.device.open_for("training the renderer")?;
+    let gpu = a.device.open_for_training("training the renderer")?;
     if gpu.is_none() && a.json.is_some() {
         anyhow::bail!("bench renderer-grad --json is for the GPU (--device gpu)");
     }

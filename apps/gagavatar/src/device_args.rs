@@ -52,6 +52,22 @@ impl DeviceArgs {
     /// [`DeviceArgs::open`], the line saying `what` runs there ("rendering", "reconstructing
     /// and rendering", ...).
     pub fn open_for(&self, what: &str) -> Result<Option<Arc<Gpu>>> {
+        self.open_as(what, false)
+    }
+
+    /// [`DeviceArgs::open_for`] for the training kernels, which run f32 convolutions whatever
+    /// the adapter offers (the f16 tensor-core path is forward only): f16 asked for is an
+    /// error, and the line says f32.
+    pub fn open_for_training(&self, what: &str) -> Result<Option<Arc<Gpu>>> {
+        if self.gpu_precision == GpuPrecisionArg::F16 {
+            anyhow::bail!(
+                "--gpu-precision f16 is for rendering: {what} runs f32 convolutions (use f32 or auto)"
+            );
+        }
+        self.open_as(what, true)
+    }
+
+    fn open_as(&self, what: &str, f32_only: bool) -> Result<Option<Arc<Gpu>>> {
         let gpu = match self.device {
             DeviceChoice::Cpu => return Ok(None),
             DeviceChoice::Auto => match Gpu::new(AdapterPolicy::RealOnly) {
@@ -64,9 +80,10 @@ impl DeviceArgs {
             DeviceChoice::Gpu => Gpu::new(AdapterPolicy::AllowCpu)?,
         };
         // Checked here so a bad combination fails before any work.
-        let mma = gagavatar_gpu::Tuning::default()
-            .with_precision(self.precision(), &gpu)?
-            .mma;
+        let mma = !f32_only
+            && gagavatar_gpu::Tuning::default()
+                .with_precision(self.precision(), &gpu)?
+                .mma;
         let convs = if mma {
             "f16 convolutions on the tensor cores"
         } else {

@@ -298,6 +298,7 @@ fn bench_drive_reports_stages_on_both_devices() {
         "renderer: U-Net + SFT",
         "renderer: mapping + decoder",
         "frames/s",
+        "streamed (frame i + 1 rendering while frame i is read back",
     ] {
         assert!(
             text.contains(want),
@@ -366,11 +367,32 @@ fn bench_renderer_grad_runs_on_both_devices() {
             "bench renderer-grad --device gpu: no `{want}` in\n{text}"
         );
     }
+    // The training kernels are f32 whatever the adapter offers, and the device line says so.
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("(f32 convolutions)"), "{err}");
     let doc: serde_json::Value =
         serde_json::from_slice(&std::fs::read(&json).expect("the JSON")).expect("valid JSON");
     assert!(
         doc["step_ms"]["median"].as_f64().is_some_and(|v| v > 0.0),
         "{doc}"
+    );
+    let refused = run(
+        &[
+            "bench",
+            "renderer-grad",
+            "--device",
+            "gpu",
+            "--gpu-precision",
+            "f16",
+            "--preset",
+            "tiny",
+        ],
+        &[],
+    );
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        !refused.status.success() && err.contains("--gpu-precision f16 is for rendering"),
+        "f16 training was not refused: {err}"
     );
     let out = ok(&[
         "bench",

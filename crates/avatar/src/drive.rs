@@ -2,6 +2,7 @@
 //! Gaussians from the frame's camera, and the neural renderer; one trait, a CPU and a GPU
 //! implementation.
 
+use std::ops::ControlFlow;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -46,6 +47,29 @@ pub trait Drive {
         let mut out = self.render_batch(&[(codes.clone(), *camera)])?;
         out.pop()
             .ok_or_else(|| input_err("render", "the drive returned no frame"))
+    }
+
+    /// Renders every `(codes, camera)` in order, handing each frame to `each` as it is ready
+    /// (the CPU drive renders `batch` frames at a time; the GPU drive renders one while the
+    /// previous one is read back, whatever `batch` is). `each` returning `Break` stops early.
+    /// Returns how many frames `each` received.
+    fn render_stream(
+        &mut self,
+        frames: &[(FrameCodes, Camera)],
+        batch: usize,
+        each: &mut dyn FnMut(usize, Vec<u8>) -> ControlFlow<()>,
+    ) -> Result<usize> {
+        let batch = batch.max(1);
+        let mut done = 0;
+        for (c, chunk) in frames.chunks(batch).enumerate() {
+            for (k, img) in self.render_batch(chunk)?.into_iter().enumerate() {
+                done += 1;
+                if each(c * batch + k, img).is_break() {
+                    return Ok(done);
+                }
+            }
+        }
+        Ok(done)
     }
 
     /// The stage times so far.
@@ -240,6 +264,29 @@ impl Drive for GpuDrive {
         self.times.gpu += t0.elapsed();
         self.times.frames += frames.len();
         Ok(out)
+    }
+
+    fn render_stream(
+        &mut self,
+        frames: &[(FrameCodes, Camera)],
+        _batch: usize,
+        each: &mut dyn FnMut(usize, Vec<u8>) -> ControlFlow<()>,
+    ) -> Result<usize> {
+        for (i, (_, cam)) in frames.iter().enumerate() {
+            check_camera(cam, i)?;
+        }
+        // The drive's time is the wall time less what `each` spends (encoding, sending).
+        let t0 = Instant::now();
+        let mut outside = Duration::ZERO;
+        let done = self.inner.stream_rgb8(frames, |k, img| {
+            let t = Instant::now();
+            let flow = each(k, img);
+            outside += t.elapsed();
+            flow
+        })?;
+        self.times.gpu += t0.elapsed().saturating_sub(outside);
+        self.times.frames += done;
+        Ok(done)
     }
 
     fn times(&self) -> DriveTimes {

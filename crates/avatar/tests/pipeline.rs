@@ -97,6 +97,26 @@ fn one_avatar_renders_single_frames_and_batches_alike() {
     let t = drive.times();
     assert_eq!(t.frames, 3 + 3 + 1);
     assert!(t.renderer > std::time::Duration::ZERO && t.gpu.is_zero());
+    // Streamed two at a time, in order, each frame within a batch's rounding of the batch of
+    // three; a stop after the first frame renders no further batch.
+    let mut streamed = Vec::new();
+    let n = drive
+        .render_stream(&frames, 2, &mut |k, img| {
+            streamed.push((k, img));
+            std::ops::ControlFlow::Continue(())
+        })
+        .unwrap();
+    assert_eq!(n, 3);
+    for (i, (k, img)) in streamed.iter().enumerate() {
+        assert_eq!(*k, i);
+        let d = max_level_diff(img, &batch[i]);
+        assert!(d <= BATCH_LEVELS, "streamed frame {i}: {d} levels from the batch");
+    }
+    let before = drive.times().frames;
+    let n = drive
+        .render_stream(&frames, 1, &mut |_, _| std::ops::ControlFlow::Break(()))
+        .unwrap();
+    assert_eq!((n, drive.times().frames - before), (1, 1));
 }
 
 #[test]
@@ -171,6 +191,20 @@ fn the_gpu_drive_renders_what_the_cpu_drive_renders() {
     }
     assert_eq!(dev.times().frames, 2);
     assert!(dev.times().gpu > std::time::Duration::ZERO);
+    // Streamed, the GPU's frames are its batch's bytes.
+    let mut streamed = Vec::new();
+    let n = dev
+        .render_stream(&frames, 1, &mut |k, img| {
+            streamed.push((k, img));
+            std::ops::ControlFlow::Continue(())
+        })
+        .unwrap();
+    assert_eq!(n, 2);
+    for (i, (k, img)) in streamed.iter().enumerate() {
+        assert_eq!(*k, i);
+        assert!(img == &b[i], "streamed frame {i} differs from the batch");
+    }
+    assert_eq!(dev.times().frames, 4);
 }
 
 /// `Engine::avatar_on_gpu`: the network on the GPU, the Gaussians kept there for the GPU drive

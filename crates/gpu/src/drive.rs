@@ -4,6 +4,7 @@
 //! submission and one read-back of the RGB image (plus the pair count that tells whether the
 //! splatting had room, rarely not: then the frame is rendered again with more).
 
+use std::ops::ControlFlow;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -481,9 +482,26 @@ impl GpuDrive {
     /// [`GpuDrive::frame_rgb8`] frame by frame.
     pub fn frames_rgb8(&mut self, jobs: &[(FrameCodes, [[f64; 4]; 3])]) -> Result<Vec<Vec<u8>>> {
         let mut out = Vec::with_capacity(jobs.len());
+        self.stream_rgb8(jobs, |_, img| {
+            out.push(img);
+            ControlFlow::Continue(())
+        })?;
+        Ok(out)
+    }
+
+    /// [`GpuDrive::frames_rgb8`] handing each frame, in order, to `each` as soon as it is read
+    /// back (while the next one renders), so a caller can encode or send it without holding the
+    /// clip in memory; `each` returning `Break` stops once the frame already in flight is done.
+    /// Returns how many frames `each` received.
+    pub fn stream_rgb8(
+        &mut self,
+        jobs: &[(FrameCodes, [[f64; 4]; 3])],
+        mut each: impl FnMut(usize, Vec<u8>) -> ControlFlow<()>,
+    ) -> Result<usize> {
+        let mut done = 0;
         let mut in_flight = std::collections::VecDeque::with_capacity(2);
         let mut next = 0;
-        while out.len() < jobs.len() {
+        while done < jobs.len() {
             while in_flight.len() < 2 && next < jobs.len() {
                 let (codes, transform) = &jobs[next];
                 self.prepare(codes, transform)?;
@@ -505,9 +523,15 @@ impl GpuDrive {
             }
             self.frames += 1;
             let img: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes);
-            out.push(rgb8(&img, self.size));
+            done += 1;
+            if each(k, rgb8(&img, self.size)).is_break() {
+                // The frame behind this one finishes on the device; nothing stays pending for
+                // the next call.
+                self.gpu.wait()?;
+                break;
+            }
         }
-        Ok(out)
+        Ok(done)
     }
 
     /// The last frame's splatted image `[C, S, S]` (for parity checks).
@@ -787,6 +811,26 @@ mod tests {
                 assert!(d.pair_capacity() > before, "the pair buffers never grew");
             }
         }
+        // A stream stopped after its second frame hands over exactly two, in order, and
+        // leaves nothing in flight: the next stream renders the whole clip as before.
+        let mut d = open(&Tuning::default());
+        let mut got = Vec::new();
+        let n = d
+            .stream_rgb8(&jobs, |k, img| {
+                got.push((k, img));
+                if k == 1 {
+                    ControlFlow::Break(())
+                } else {
+                    ControlFlow::Continue(())
+                }
+            })
+            .unwrap();
+        assert_eq!(n, 2);
+        assert_eq!(got.iter().map(|g| g.0).collect::<Vec<_>>(), [0, 1]);
+        for (k, img) in &got {
+            assert!(img == &want[*k], "stopped stream, frame {k} differs");
+        }
+        assert!(d.frames_rgb8(&jobs).unwrap() == want, "the stream after a stop differs");
     }
 
     /// An avatar reconstructed on the GPU drives from its own buffers exactly as its
