@@ -12,9 +12,9 @@
 #   bash tools/device/gpu_check.sh
 set -u
 # FRAMES, SWEEP_FRAMES, REENACT_FRAMES, RECONSTRUCT_RUNS, GRAD_RUNS, PRESET and TESTS (a
-# test-name filter)
-# shrink the run for
-# a dry run on lavapipe; SKIP_TESTS=1 leaves the parity tests out.
+# test-name filter) shrink the run for a dry run on lavapipe; SKIP_TESTS=1 leaves the parity
+# tests out. STEPS (drive reconstruct grad reenact tests sweep), DRIVE_RUNS (small large f16),
+# RECONSTRUCT_PRECISIONS and REENACT_PRECISIONS (f16 f32) pick what a later call redoes.
 FRAMES=${FRAMES:-300}
 SWEEP_FRAMES=${SWEEP_FRAMES:-40}
 PRESET=${PRESET:-release}
@@ -28,12 +28,21 @@ log() { echo "== $*" | tee -a "$OUT/summary.txt"; }
 TUNES=(
     "f32|"
     "f16|"
-    "f16|mma_bm=128,mma_bn=128,mma_fm=2,mma_fn=2"
-    "f16|mma_bn=128,mma_fn=2"
-    "f16|mma_bk=16"
+    "f16|mma_fit=0,mma_prefetch=0,mma_small_prefetch=0"
+    "f16|mma_fit=0"
+    "f16|mma_prefetch=0,mma_small_prefetch=0"
+    "f16|mma_bm=32,mma_bn=32"
+    "f16|mma_bm=32,mma_bn=64"
+    "f16|mma_bk=64"
     "f16|mma_split_k=288"
-    "f16|mma_small_bn=32"
-    "f32|conv_bm=32,conv_bn=128,conv_tm=8,conv_tn=8,conv_small_bm=64,conv_small_bn=16,conv_small_tm=4,conv_small_tn=2,conv_split_k=576"
+)
+
+# Tunings of `bench reconstruct` on the tensor cores, beside its defaults.
+RECONSTRUCT_TUNES=(
+    "ln_slices=1"
+    "mma_fit=0,mma_prefetch=0,mma_small_prefetch=0"
+    "mma_fit=0,mma_prefetch=0,mma_small_prefetch=0,ln_slices=1"
+    "ln_slices=64"
 )
 
 # The Vulkan loader (the machine has the NVIDIA driver but may lack the loader).
@@ -68,7 +77,7 @@ want() { case " $STEPS " in *" $1 "*) return 0 ;; *) return 1 ;; esac; }
 
 want drive && {
 log "bench drive, $PRESET, $FRAMES frames: f32 (small and large Gaussians), f16 tensor cores (small)"
-for run in small large f16; do
+for run in ${DRIVE_RUNS:-small large f16}; do
     regime=$run precision=f32
     [ "$run" = f16 ] && regime=small precision=f16
     timeout 150 "$BIN/gagavatar" bench drive --device gpu --gpu-precision "$precision" \
@@ -81,12 +90,25 @@ done
 
 want reconstruct && {
 log "bench reconstruct, $PRESET seeded weights, ${RECONSTRUCT_RUNS:-20} runs: f16 tensor cores, then f32"
-for precision in f16 f32; do
+for precision in ${RECONSTRUCT_PRECISIONS:-f16 f32}; do
     timeout 120 "$BIN/gagavatar" bench reconstruct --device gpu --gpu-precision "$precision" \
-        --preset "$PRESET" --runs "${RECONSTRUCT_RUNS:-20}" \
+        --preset "$PRESET" --runs "${RECONSTRUCT_RUNS:-20}" --dispatches \
         --json "$OUT/bench_reconstruct_$precision.json" > "$OUT/bench_reconstruct_$precision.txt" 2>&1
     echo "exit $? (reconstruct, $precision)" >> "$OUT/summary.txt"
-    tail -10 "$OUT/bench_reconstruct_$precision.txt" >> "$OUT/summary.txt"
+    tail -32 "$OUT/bench_reconstruct_$precision.txt" >> "$OUT/summary.txt"
+done
+# The kernels' knobs against each other on the tensor cores (the defaults ran above).
+i=0
+for tune in "${RECONSTRUCT_TUNES[@]}"; do
+    GAGAVATAR_GPU_TUNE="$tune" timeout 90 "$BIN/gagavatar" bench reconstruct --device gpu \
+        --gpu-precision f16 --preset "$PRESET" --runs "${RECONSTRUCT_RUNS:-20}" \
+        > "$OUT/reconstruct_tune_$i.txt" 2>&1
+    rc=$?
+    med=$(grep -o 'median [0-9.]* ms' "$OUT/reconstruct_tune_$i.txt")
+    dino=$(grep -o 'dino *[0-9.]* ms' "$OUT/reconstruct_tune_$i.txt")
+    echo "reconstruct tune $i [f16 $tune] exit $rc $med; $dino" >> "$OUT/summary.txt"
+    [ $rc = 0 ] || tail -3 "$OUT/reconstruct_tune_$i.txt" >> "$OUT/summary.txt"
+    i=$((i + 1))
 done
 }
 
@@ -102,7 +124,7 @@ tail -5 "$OUT/bench_renderer_grad.txt" >> "$OUT/summary.txt"
 want reenact && {
 log "reenact end to end, $PRESET seeded weights, ${REENACT_FRAMES:-354} frames (records cached: no tracking), f16 then f32"
 "$BIN/gagavatar" init-weights --preset "$PRESET" --seed 1 -o "$BIN/weights.safetensors" > /dev/null 2>&1
-for precision in f16 f32; do
+for precision in ${REENACT_PRECISIONS:-f16 f32}; do
     timeout 150 "$BIN/gagavatar" reenact --ckpt "$BIN/weights.safetensors" --flame synthetic \
         --source assets/demo/source.png --source-record assets/demo/source.json \
         --driver .dev/driver354.json --max-frames "${REENACT_FRAMES:-354}" \

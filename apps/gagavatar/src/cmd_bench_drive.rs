@@ -19,7 +19,9 @@ use gagavatar_net::ModelConfig;
 use gagavatar_splat::testscene::{avatar_scene, Regime, Rng};
 use gagavatar_splat::Camera;
 
-use crate::bench_stats::median;
+use crate::bench_stats::{
+    by_kernel as by_kernel_of, dispatches_json, median, print_dispatches, KernelTotal,
+};
 use crate::device_args::DeviceArgs;
 use gagavatar_avatar::{CpuDrive, Drive};
 
@@ -226,23 +228,11 @@ fn bench_gpu(
             per_stage[k].push(*v);
         }
     }
-    // Per kernel and grid (the layers of one shape share both), summed over the frame.
-    let mut by_kernel: Vec<(String, &'static str, usize, f64)> = Vec::new();
+    let mut by_kernel: Vec<KernelTotal> = Vec::new();
     let mut have_timestamps = true;
     if a.dispatches {
         match drive.profile_dispatches(&codes(rng, flame.config.n_exp, 0), tm)? {
-            Some(times) => {
-                for t in times {
-                    match by_kernel.iter_mut().find(|k| k.0 == t.label) {
-                        Some(k) => {
-                            k.2 += 1;
-                            k.3 += t.ms;
-                        }
-                        None => by_kernel.push((t.label, t.stage, 1, t.ms)),
-                    }
-                }
-                by_kernel.sort_by(|x, y| y.3.total_cmp(&x.3));
-            }
+            Some(times) => by_kernel = by_kernel_of(times),
             None => have_timestamps = false,
         }
     }
@@ -323,14 +313,7 @@ fn bench_gpu(
     );
     if a.dispatches {
         if have_timestamps {
-            let total: f64 = by_kernel.iter().map(|k| k.3).sum();
-            println!(
-                "  dispatches of one frame, each timed alone ({} kernels and grids, {total:.2} ms in all; the 15 costliest):",
-                by_kernel.len()
-            );
-            for (label, stage, calls, ms) in by_kernel.iter().take(15) {
-                println!("    {label:<52} {calls:>3} x  {ms:>8.3} ms  ({stage})");
-            }
+            print_dispatches(&by_kernel, "one frame", 15);
         } else {
             println!("  dispatches: this adapter has no timestamp queries");
         }
@@ -372,12 +355,7 @@ fn bench_gpu(
             "streamed_frames_per_s": 1e3 / streamed_ms,
             "gpu_buffers_mib": mib,
             "pair_capacity": drive.pair_capacity(),
-            "dispatches": by_kernel
-                .iter()
-                .map(|(label, stage, calls, ms)| {
-                    serde_json::json!({"kernel": label, "stage": stage, "calls": calls, "ms": ms})
-                })
-                .collect::<Vec<_>>(),
+            "dispatches": dispatches_json(&by_kernel),
         });
         let text = serde_json::to_string_pretty(&doc)? + "\n";
         gagavatar_formats::atomic::write_atomic(path, text.as_bytes())

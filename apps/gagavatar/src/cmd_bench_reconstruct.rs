@@ -10,7 +10,7 @@ use gagavatar_gpu::reconstruct::{GpuReconstruct, STAGES};
 use gagavatar_net::model::GagAvatar;
 use gagavatar_net::ModelConfig;
 
-use crate::bench_stats::median;
+use crate::bench_stats::{by_kernel as by_kernel_of, dispatches_json, median, print_dispatches};
 use crate::device_args::DeviceArgs;
 
 #[derive(Debug, Args)]
@@ -29,6 +29,10 @@ pub struct ReconstructBench {
     /// Timed runs (the median is reported); default 20 on a GPU, 3 on the CPU.
     #[arg(long)]
     runs: Option<usize>,
+    /// Also time every dispatch of one run (GPU timestamps, each dispatch in a pass of its
+    /// own) and print the kernels (by name and grid) that take the most time; GPU only.
+    #[arg(long)]
+    dispatches: bool,
     /// Also write the figures as JSON (per-stage ms, run ms, GPU memory) to this file; GPU
     /// only.
     #[arg(long)]
@@ -146,6 +150,16 @@ pub fn bench_reconstruct(a: ReconstructBench) -> Result<()> {
         wall.first().copied().unwrap_or(f64::NAN),
         wall.last().copied().unwrap_or(f64::NAN),
     );
+    let mut by_kernel = Vec::new();
+    if a.dispatches {
+        match rec.profile_dispatches(&image, &tm)? {
+            Some(times) => {
+                by_kernel = by_kernel_of(times);
+                print_dispatches(&by_kernel, "one run", 20);
+            }
+            None => println!("  dispatches: this adapter has no timestamp queries"),
+        }
+    }
     let mib = rec.gpu().allocated_bytes() as f64 / (1 << 20) as f64;
     println!("  GPU buffers allocated: {mib:.0} MiB (weights, activations, the avatar)");
     if let Some(path) = &a.json {
@@ -161,6 +175,7 @@ pub fn bench_reconstruct(a: ReconstructBench) -> Result<()> {
             "runs": runs,
             "run_ms": {"median": med, "min": wall.first().copied(), "max": wall.last().copied()},
             "gpu_buffers_mib": mib,
+            "dispatches": dispatches_json(&by_kernel),
         });
         let text = serde_json::to_string_pretty(&doc)? + "\n";
         gagavatar_formats::atomic::write_atomic(path, text.as_bytes())

@@ -110,7 +110,10 @@ fn one_avatar_renders_single_frames_and_batches_alike() {
     for (i, (k, img)) in streamed.iter().enumerate() {
         assert_eq!(*k, i);
         let d = max_level_diff(img, &batch[i]);
-        assert!(d <= BATCH_LEVELS, "streamed frame {i}: {d} levels from the batch");
+        assert!(
+            d <= BATCH_LEVELS,
+            "streamed frame {i}: {d} levels from the batch"
+        );
     }
     let before = drive.times().frames;
     let n = drive

@@ -221,14 +221,17 @@ impl Tile {
 }
 
 /// The plan for a layer: the small tile below 32x32 pixels; the tensor-core kernel where
-/// `tuning.mma` (see [`Tuning::for_device`]); split-K where the layer's tiles alone would not
+/// `tuning.mma` (see [`Tuning::for_device`]), its tile fitted to few output channels; split-K where the layer's tiles alone would not
 /// fill the device (fewer than 256 workgroups) and the depth is more than two slices.
 pub fn plan(tuning: &Tuning, cin: usize, cout: usize, h: usize, w: usize, k: usize) -> ConvPlan {
     let small = h * w < 1024;
     let (tile, split) = match (tuning.mma, small) {
         (false, false) => (Tile::Simt(tuning.conv), tuning.conv_split_k),
         (false, true) => (Tile::Simt(tuning.conv_small), tuning.conv_split_k),
-        (true, false) => (Tile::Mma(tuning.mma_tile), tuning.mma_split_k),
+        (true, false) => (
+            Tile::Mma(tuning.mma_tile.fitted(cout, tuning.mma_fit)),
+            tuning.mma_split_k,
+        ),
         (true, true) => (Tile::Mma(tuning.mma_small), tuning.mma_split_k),
     };
     let (bm, bn, bk) = tile.dims();
@@ -337,6 +340,7 @@ pub fn conv_consts(tile: Tile, k: usize, split: u32, o: Options) -> Vec<(&'stati
                 ("BK", t.bk.to_string()),
                 ("FM", t.fm.to_string()),
                 ("FN", t.fn_.to_string()),
+                ("PREFETCH", flag(t.prefetch)),
             ]);
             v
         }
@@ -814,6 +818,7 @@ mod tests {
             g,
             &[
                 "mma=1",
+                "mma=1,mma_fit=0,mma_prefetch=0,mma_small_prefetch=0",
                 "mma=1,mma_split_k=64",
                 "mma=1,mma_bm=32,mma_bn=64,mma_fm=1,mma_fn=2,mma_small_bm=32,mma_small_bn=16,\
                  mma_small_fm=1,mma_small_fn=1,mma_bk=16,mma_small_bk=48",
@@ -853,6 +858,7 @@ mod tests {
             bk: 16,
             fm: 1,
             fn_: 2,
+            prefetch: false,
         };
         let big = MmaTile {
             bm: 128,
@@ -860,6 +866,7 @@ mod tests {
             bk: 32,
             fm: 2,
             fn_: 2,
+            prefetch: true,
         };
         for (tile, k, split, o) in [
             (big, 3, 0, all),
@@ -876,6 +883,8 @@ mod tests {
             ),
             (t.mma_small, 3, 288, Options::default()),
             (other, 3, 0, all),
+            (t.mma_tile.fitted(16, true), 3, 0, all),
+            (t.mma_tile.fitted(32, true), 1, 0, resid),
         ] {
             let src = mma_source(tile, k, split, o).unwrap();
             let module = naga::front::wgsl::parse_str(&src)
@@ -977,6 +986,9 @@ mod tests {
                 },
             ),
             (64, 24, 4, 4, 3, all),
+            // 17..=32 output channels over 1024 pixels: the tensor cores' tile fitted to 32 rows
+            // (the 20 -> 4 layer above takes the 16-row one).
+            (24, 20, 33, 35, 3, all),
         ];
         for tune in tunes {
             let mut t = Tuning::default();

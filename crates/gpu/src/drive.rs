@@ -19,7 +19,7 @@ use gagavatar_splat::Camera;
 use crate::device::Gpu;
 use crate::error::{input_err, GpuError, Result};
 use crate::flame::{FrameCodes, GpuFlame};
-use crate::kernel::{map_read, Step};
+use crate::kernel::{map_read, DispatchTime, Step};
 use crate::reconstruct::GpuAvatar;
 use crate::renderer::GpuRenderer;
 use crate::splat::{GpuSplat, SplatBuffers, SplatInputs};
@@ -107,15 +107,6 @@ fn rgb8(img: &[f32], size: usize) -> Vec<u8> {
         }
     }
     out
-}
-
-/// One dispatch's GPU time ([`GpuDrive::profile_dispatches`]).
-#[derive(Debug, Clone)]
-pub struct DispatchTime {
-    pub stage: &'static str,
-    /// Kernel name and grid.
-    pub label: String,
-    pub ms: f64,
 }
 
 impl GpuDrive {
@@ -633,56 +624,7 @@ impl GpuDrive {
             .enumerate()
             .flat_map(|(i, st)| st.into_iter().map(move |s| (STAGES[i], s)))
             .collect();
-        let n = 2 * steps.len() as u32;
-        let set = self.gpu.device.create_query_set(&wgpu::QuerySetDescriptor {
-            label: Some("dispatch timestamps"),
-            ty: wgpu::QueryType::Timestamp,
-            count: n,
-        });
-        let bytes = 8 * n as u64;
-        let resolve = self.gpu.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("dispatch timestamps"),
-            size: bytes,
-            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        let read = self.gpu.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("dispatch timestamps read-back"),
-            size: bytes,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let mut enc = self
-            .gpu
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
-        for (i, (_, s)) in steps.iter().enumerate() {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: None,
-                timestamp_writes: Some(wgpu::ComputePassTimestampWrites {
-                    query_set: &set,
-                    beginning_of_pass_write_index: Some(2 * i as u32),
-                    end_of_pass_write_index: Some(2 * i as u32 + 1),
-                }),
-            });
-            s.record(&mut pass);
-        }
-        enc.resolve_query_set(&set, 0..n, &resolve, 0);
-        enc.copy_buffer_to_buffer(&resolve, 0, &read, 0, bytes);
-        self.gpu.queue.submit([enc.finish()]);
-        let ticks: Vec<u64> = bytemuck::pod_collect_to_vec(&map_read(&self.gpu, &read, bytes)?);
-        let period = self.gpu.queue.get_timestamp_period() as f64;
-        Ok(Some(
-            steps
-                .iter()
-                .enumerate()
-                .map(|(i, (stage, s))| DispatchTime {
-                    stage,
-                    label: s.label(),
-                    ms: ticks[2 * i + 1].saturating_sub(ticks[2 * i]) as f64 * period * 1e-6,
-                })
-                .collect(),
-        ))
+        crate::kernel::time_dispatches(&self.gpu, &steps)
     }
 
     /// Frames rendered so far.
@@ -830,7 +772,10 @@ mod tests {
         for (k, img) in &got {
             assert!(img == &want[*k], "stopped stream, frame {k} differs");
         }
-        assert!(d.frames_rgb8(&jobs).unwrap() == want, "the stream after a stop differs");
+        assert!(
+            d.frames_rgb8(&jobs).unwrap() == want,
+            "the stream after a stop differs"
+        );
     }
 
     /// An avatar reconstructed on the GPU drives from its own buffers exactly as its

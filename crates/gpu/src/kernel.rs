@@ -414,3 +414,74 @@ pub const LINEAR_X: u32 = 32768;
 pub fn groups(n: usize, per: usize) -> u32 {
     n.div_ceil(per.max(1)) as u32
 }
+
+/// One dispatch's GPU time ([`time_dispatches`]).
+#[derive(Debug, Clone)]
+pub struct DispatchTime {
+    /// The stage it belongs to.
+    pub stage: &'static str,
+    /// Kernel name and grid.
+    pub label: String,
+    pub ms: f64,
+}
+
+/// Runs `steps` once, each in a compute pass of its own between two device timestamps, and
+/// returns each one's time (in order), or `None` where the adapter has no timestamp queries.
+/// The buffers the steps use must hold the inputs of a real run.
+pub fn time_dispatches(
+    gpu: &Gpu,
+    steps: &[(&'static str, &Step)],
+) -> Result<Option<Vec<DispatchTime>>> {
+    if !gpu.has_timestamps() || steps.is_empty() {
+        return Ok(None);
+    }
+    let n = 2 * steps.len() as u32;
+    let set = gpu.device.create_query_set(&wgpu::QuerySetDescriptor {
+        label: Some("dispatch timestamps"),
+        ty: wgpu::QueryType::Timestamp,
+        count: n,
+    });
+    let bytes = 8 * n as u64;
+    let resolve = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("dispatch timestamps"),
+        size: bytes,
+        usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+        mapped_at_creation: false,
+    });
+    let read = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("dispatch timestamps read-back"),
+        size: bytes,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut enc = gpu
+        .device
+        .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+    for (i, (_, s)) in steps.iter().enumerate() {
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: None,
+            timestamp_writes: Some(wgpu::ComputePassTimestampWrites {
+                query_set: &set,
+                beginning_of_pass_write_index: Some(2 * i as u32),
+                end_of_pass_write_index: Some(2 * i as u32 + 1),
+            }),
+        });
+        s.record(&mut pass);
+    }
+    enc.resolve_query_set(&set, 0..n, &resolve, 0);
+    enc.copy_buffer_to_buffer(&resolve, 0, &read, 0, bytes);
+    gpu.queue.submit([enc.finish()]);
+    let ticks: Vec<u64> = bytemuck::pod_collect_to_vec(&map_read(gpu, &read, bytes)?);
+    let period = gpu.queue.get_timestamp_period() as f64;
+    Ok(Some(
+        steps
+            .iter()
+            .enumerate()
+            .map(|(i, (stage, s))| DispatchTime {
+                stage,
+                label: s.label(),
+                ms: ticks[2 * i + 1].saturating_sub(ticks[2 * i]) as f64 * period * 1e-6,
+            })
+            .collect(),
+    ))
+}

@@ -54,7 +54,8 @@ impl ConvTile {
 
 /// Output tile of the tensor-core convolution (`conv_mma.wgsl`): a workgroup computes
 /// `bm x bn` outputs with one 32-lane subgroup per `16 fm x 16 fn` block of them (each holding
-/// `fm x fn` 16x16 f32 accumulators), stepping `bk` (a multiple of 16) along the depth.
+/// `fm x fn` 16x16 f32 accumulators), stepping `bk` (a multiple of 16) along the depth; with
+/// `prefetch` the next step's tiles are read from memory while this step's multiply-adds run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct MmaTile {
     pub bm: u32,
@@ -62,9 +63,33 @@ pub struct MmaTile {
     pub bk: u32,
     pub fm: u32,
     pub fn_: u32,
+    pub prefetch: bool,
 }
 
 impl MmaTile {
+    /// The tile for a layer of `cout` output channels with `fit`: where `cout` fills only 16 or
+    /// 32 of the tile's rows (and `fm` is 1), that many rows and proportionally more pixels,
+    /// so no subgroup multiplies padding; the same threads and subgroups.
+    pub fn fitted(&self, cout: usize, fit: bool) -> MmaTile {
+        if !fit || self.fm != 1 {
+            return *self;
+        }
+        for rows in [16u32, 32] {
+            if cout <= rows as usize
+                && rows < self.bm
+                && self.bm.is_multiple_of(rows)
+                && (self.bn * (self.bm / rows)).is_multiple_of(16 * self.fn_)
+            {
+                return MmaTile {
+                    bm: rows,
+                    bn: self.bn * (self.bm / rows),
+                    ..*self
+                };
+            }
+        }
+        *self
+    }
+
     pub fn warps(&self) -> u32 {
         (self.bm / (16 * self.fm.max(1))) * (self.bn / (16 * self.fn_.max(1)))
     }
@@ -170,6 +195,11 @@ pub struct Tuning {
     pub mma_small: MmaTile,
     /// Split-K depth for the tensor-core convolutions (0 = never).
     pub mma_split_k: u32,
+    /// Tensor-core tiles fitted to layers of at most 32 output channels
+    /// ([`MmaTile::fitted`]).
+    pub mma_fit: bool,
+    /// Threads per token of the ViT's LayerNorm (a power of two, 1..=256).
+    pub ln_slices: u32,
 }
 
 impl Default for Tuning {
@@ -208,6 +238,7 @@ impl Default for Tuning {
                 bk: 32,
                 fm: 1,
                 fn_: 1,
+                prefetch: true,
             },
             mma_small: MmaTile {
                 bm: 64,
@@ -215,8 +246,11 @@ impl Default for Tuning {
                 bk: 32,
                 fm: 1,
                 fn_: 1,
+                prefetch: true,
             },
             mma_split_k: 144,
+            mma_fit: true,
+            ln_slices: 16,
         }
     }
 }
@@ -254,6 +288,8 @@ impl Tuning {
                 "conv_split_k" => self.conv_split_k = int()?,
                 "mma" => self.mma = int()? != 0,
                 "mma_split_k" => self.mma_split_k = int()?,
+                "mma_fit" => self.mma_fit = int()? != 0,
+                "ln_slices" => self.ln_slices = int()?,
                 key if key.starts_with("mma_") => {
                     let (tile, field) = if let Some(f) = key.strip_prefix("mma_small_") {
                         (&mut self.mma_small, f)
@@ -266,6 +302,10 @@ impl Tuning {
                         "bk" => &mut tile.bk,
                         "fm" => &mut tile.fm,
                         "fn" => &mut tile.fn_,
+                        "prefetch" => {
+                            tile.prefetch = int()? != 0;
+                            continue;
+                        }
                         _ => return Err(bad("unknown key")),
                     };
                     *slot = int()?;
@@ -328,6 +368,9 @@ impl Tuning {
         if !(1..=16).contains(&self.scan_items) || !(1..=16).contains(&self.radix_items) {
             return bad("scan_items and radix_items must be 1..=16".into());
         }
+        if !(self.ln_slices.is_power_of_two() && self.ln_slices <= 256) {
+            return bad("ln_slices must be a power of two up to 256".into());
+        }
         if !(1..=8).contains(&self.radix_bits) {
             return bad("radix_bits must be 1..=8".into());
         }
@@ -349,6 +392,13 @@ impl Tuning {
         if self.mma {
             self.mma_tile.check("mma", threads, shared)?;
             self.mma_small.check("mma_small", threads, shared)?;
+            for cout in [16, 32] {
+                self.mma_tile.fitted(cout, self.mma_fit).check(
+                    "mma (fitted to 16 or 32 output channels)",
+                    threads,
+                    shared,
+                )?;
+            }
         }
         Ok(())
     }
@@ -357,6 +407,25 @@ impl Tuning {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Fitted tiles keep the threads and subgroups and shrink only where the channels leave
+    /// rows empty; without `fit`, or with several blocks per subgroup, the tile is as given.
+    #[test]
+    fn tiles_fit_few_output_channels() {
+        let t = Tuning::default().mma_tile;
+        for (cout, bm) in [(1, 16), (16, 16), (17, 32), (32, 32), (33, 64), (512, 64)] {
+            let f = t.fitted(cout, true);
+            assert_eq!(f.bm, bm, "cout {cout}");
+            assert_eq!(f.bm * f.bn, t.bm * t.bn, "cout {cout}");
+            assert_eq!(f.threads(), t.threads(), "cout {cout}");
+        }
+        assert_eq!(t.fitted(3, false), t);
+        let wide = MmaTile { fm: 2, ..t };
+        assert_eq!(wide.fitted(3, true), wide);
+        let mut off = Tuning::default();
+        off.apply("mma_fit=0,mma_prefetch=0").unwrap();
+        assert!(!off.mma_fit && !off.mma_tile.prefetch && off.mma_small.prefetch);
+    }
 
     #[test]
     fn parses_and_rejects() {

@@ -29,7 +29,7 @@ use gagavatar_net::ModelConfig;
 
 use crate::device::Gpu;
 use crate::error::{input_err, GpuError, Result};
-use crate::kernel::{record_all, Step};
+use crate::kernel::{record_all, DispatchTime, Step};
 use crate::tuning::Tuning;
 use parts::{Ctx, Loader};
 
@@ -321,6 +321,25 @@ impl GpuReconstruct {
             ms[i + 1] = 1e3 * t.elapsed().as_secs_f64();
         }
         Ok(ms)
+    }
+
+    /// Every dispatch of a run timed alone on the device (after a whole run, so each reads
+    /// real inputs), with its stage of [`STAGES`]; `None` where the adapter has no timestamp
+    /// queries.
+    pub fn profile_dispatches(
+        &self,
+        image: &Tensor,
+        transform: &Tensor,
+    ) -> Result<Option<Vec<DispatchTime>>> {
+        let _guard = self.locked();
+        self.run_locked(image, transform)?;
+        let steps: Vec<(&'static str, &Step)> = self
+            .stages
+            .iter()
+            .enumerate()
+            .flat_map(|(i, st)| st.iter().map(move |s| (STAGES[i + 1], s)))
+            .collect();
+        crate::kernel::time_dispatches(&self.gpu, &steps)
     }
 
     /// Every dispatch of the pass in order with its kernel's name and note (for profiles).

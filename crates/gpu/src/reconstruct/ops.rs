@@ -130,10 +130,11 @@ impl Ops<'_> {
         input: At,
         out: At,
     ) -> Result<Step> {
+        let slices = self.tuning.ln_slices;
         let k = self.gpu.kernel(
             "layer_norm",
             LAYER_NORM,
-            &[],
+            &[("SLICES", slices.to_string())],
             &[Bind::Uniform, Bind::Read, Bind::Read, Bind::ReadWrite],
         )?;
         let u = self.gpu.uniform(
@@ -150,10 +151,12 @@ impl Ops<'_> {
                 .f(eps),
         );
         let g = self.gpu.bind(&k, &[&u, input.buf, self.vecs, out.buf])?;
-        Ok(
-            Step::new(k, g, Grid::Fixed([s.n.div_ceil(64) as u32, 1, 1]))
-                .with_note(format!("{} ch x {}", s.c, s.n)),
+        Ok(Step::new(
+            k,
+            g,
+            Grid::Fixed([s.n.div_ceil(256 / slices as usize) as u32, 1, 1]),
         )
+        .with_note(format!("{} ch x {}", s.c, s.n)))
     }
 
     /// Self-attention of `heads` heads of `d` channels over `n` tokens, `qkv` `[3 heads d, n]`

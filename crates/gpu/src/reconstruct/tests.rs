@@ -163,13 +163,19 @@ fn many_tokens_and_wide_heads_match_the_cpu() {
     cfg.vit_dim = 128;
     cfg.vit_heads = 2;
     let model = seeded_model(&cfg, 11);
-    compare(
-        &model,
-        &Tuning::default(),
-        4,
-        "101 tokens, heads of 64",
-        F32_TOLS,
-    );
+    // LayerNorm with the default threads per token, one (a workgroup of 256 tokens, the last
+    // one part full) and 256 (a token per workgroup).
+    for ln in ["", "ln_slices=1", "ln_slices=256"] {
+        let mut t = Tuning::default();
+        t.apply(ln).unwrap();
+        compare(
+            &model,
+            &t,
+            4,
+            &format!("101 tokens, heads of 64 {ln}"),
+            F32_TOLS,
+        );
+    }
 }
 
 /// Another tiling (and split-K on every layer that allows it): the same results.
