@@ -29,19 +29,16 @@ TUNES=(
     "f32|"
     "f16|"
     "f16|mma_fit=0,mma_prefetch=0,mma_small_prefetch=0"
-    "f16|mma_fit=0"
     "f16|mma_prefetch=0,mma_small_prefetch=0"
-    "f16|mma_bm=32,mma_bn=32"
-    "f16|mma_bm=32,mma_bn=64"
-    "f16|mma_bk=64"
-    "f16|mma_split_k=288"
+    "f16|mma_fit=0"
+    "f16|mma_bk=16"
+    "f16|mma_small_prefetch=0"
 )
 
 # Tunings of `bench reconstruct` on the tensor cores, beside its defaults.
 RECONSTRUCT_TUNES=(
-    "ln_slices=1"
     "mma_fit=0,mma_prefetch=0,mma_small_prefetch=0"
-    "mma_fit=0,mma_prefetch=0,mma_small_prefetch=0,ln_slices=1"
+    "mma_prefetch=0,mma_small_prefetch=0"
     "ln_slices=64"
 )
 
@@ -175,3 +172,10 @@ done
     echo "}"
 } > "$OUT/check.json"
 log "done"
+
+# Only a few files come back from the device: everything but the summary and check.json goes
+# into one archive (PACK=0 keeps the files apart).
+if [ "${PACK:-1}" = 1 ]; then
+    (cd "$OUT" && find . -maxdepth 1 -type f ! -name summary.txt ! -name check.json \
+        ! -name details.tar.gz -printf '%P\n' | tar -czf details.tar.gz -T - --remove-files)
+fi

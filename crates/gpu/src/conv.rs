@@ -257,7 +257,7 @@ pub fn plan(tuning: &Tuning, cin: usize, cout: usize, h: usize, w: usize, k: usi
 /// The generated parts of conv_mma.wgsl for a tile: the accumulators (from zeros in workgroup
 /// memory), one 16-deep step of `fm x fn` multiply-adds, and the sums' way out (each block
 /// stored to the subgroup's staging area, then through the epilogue).
-fn mma_parts(t: MmaTile) -> [(&'static str, String); 3] {
+fn mma_parts(t: MmaTile) -> [(&'static str, String); 6] {
     let (mut decl, mut step, mut store) = (String::new(), String::new(), String::new());
     for i in 0..t.fm {
         step += &format!(
@@ -285,7 +285,42 @@ fn mma_parts(t: MmaTile) -> [(&'static str, String); 3] {
             );
         }
     }
-    [("ACC_DECL", decl), ("MMA", step), ("STORE", store)]
+    let [reg_decl, reg_fetch, reg_store] = register_staging(t);
+    [
+        ("ACC_DECL", decl),
+        ("MMA", step),
+        ("STORE", store),
+        ("REG_DECL", reg_decl),
+        ("REG_FETCH", reg_fetch),
+        ("REG_STORE", reg_store),
+    ]
+}
+
+/// conv_mma.wgsl's prefetching staging for a tile, written out as scalars: each thread's
+/// elements `t + i THREADS` of the weight and input tiles, their registers, the reads at depth
+/// `kf` into them, and their stores to workgroup memory.
+fn register_staging(t: MmaTile) -> [String; 3] {
+    let threads = t.threads().max(1);
+    let a_per = (t.bm * t.bk).div_ceil(threads);
+    let b_per = (t.bk * t.bn).div_ceil(threads);
+    let (mut decl, mut fetch, mut store) = (String::new(), String::new(), String::new());
+    for i in 0..a_per {
+        let off = i * threads;
+        decl += &format!("        var ra_{i} = f16(0.0);\n");
+        fetch += &format!("            ra_{i} = fetch_a(t + {off}u, m0, kf, k_hi);\n");
+        store += &format!(
+            "            if (t + {off}u < BM * BK) {{\n                As[t + {off}u] = ra_{i};\n            }}\n"
+        );
+    }
+    for i in 0..b_per {
+        let off = i * threads;
+        decl += &format!("        var rb_{i} = f16(0.0);\n");
+        fetch += &format!("            rb_{i} = fetch_b(t + {off}u, n0, kf, k_hi, b_y, b_x);\n");
+        store += &format!(
+            "            if (t + {off}u < BK * BN) {{\n                Bs[t + {off}u] = rb_{i};\n            }}\n"
+        );
+    }
+    [decl, fetch, store]
 }
 
 /// A convolution's compile-time options (the epilogue's flags, see conv.wgsl).
@@ -819,6 +854,8 @@ mod tests {
             &[
                 "mma=1",
                 "mma=1,mma_fit=0,mma_prefetch=0,mma_small_prefetch=0",
+                "mma=1,mma_prefetch=0,mma_small_prefetch=0",
+                "mma=1,mma_fit=0",
                 "mma=1,mma_split_k=64",
                 "mma=1,mma_bm=32,mma_bn=64,mma_fm=1,mma_fn=2,mma_small_bm=32,mma_small_bn=16,\
                  mma_small_fm=1,mma_small_fn=1,mma_bk=16,mma_small_bk=48",
@@ -885,6 +922,15 @@ mod tests {
             (other, 3, 0, all),
             (t.mma_tile.fitted(16, true), 3, 0, all),
             (t.mma_tile.fitted(32, true), 1, 0, resid),
+            (
+                MmaTile {
+                    prefetch: false,
+                    ..t.mma_tile.fitted(16, true)
+                },
+                3,
+                144,
+                all,
+            ),
         ] {
             let src = mma_source(tile, k, split, o).unwrap();
             let module = naga::front::wgsl::parse_str(&src)
