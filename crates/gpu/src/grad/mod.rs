@@ -19,9 +19,13 @@ pub mod modconv;
 pub mod optim;
 pub mod params;
 pub mod renderer;
+pub mod splat;
 
 #[cfg(test)]
 mod tests;
 
 #[cfg(test)]
 mod renderer_tests;
+
+#[cfg(test)]
+mod splat_tests;

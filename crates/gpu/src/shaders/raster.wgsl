@@ -3,6 +3,8 @@
 // Per pixel the decisions and the accumulation order are the CPU path's
 // (gagavatar_splat::raster::forward): skip when power > 0 or alpha < 1/255, stop before a
 // Gaussian that would take the transmittance below 1e-4, C += feature * (alpha T).
+// With STATE (training) each pixel also keeps what the backward (raster_backward.wgsl) needs:
+// its final transmittance and one past the list position of the last Gaussian it added.
 
 struct P {
     width: u32,
@@ -13,6 +15,7 @@ struct P {
 
 const C: u32 = {{CHANNELS}}u;
 const BATCH: u32 = 256u;
+const STATE: bool = {{STATE}};
 
 @group(0) @binding(0) var<uniform> p: P;
 @group(0) @binding(1) var<storage, read> ranges: array<vec2<u32>>;
@@ -22,6 +25,9 @@ const BATCH: u32 = 256u;
 @group(0) @binding(5) var<storage, read> background: array<f32>;
 // out: [C, H, W]
 @group(0) @binding(6) var<storage, read_write> image: array<f32>;
+// [H, W] each (a small stand-in without STATE)
+@group(0) @binding(7) var<storage, read_write> state_t: array<f32>;
+@group(0) @binding(8) var<storage, read_write> state_n: array<u32>;
 
 var<workgroup> s_a: array<vec4<f32>, BATCH>;
 var<workgroup> s_b: array<vec2<f32>, BATCH>;
@@ -48,6 +54,7 @@ fn main(
         acc[c] = 0.0;
     }
     var tr = 1.0;
+    var last = 0u;
     var done = !inside;
     workgroupBarrier();
     if (done) {
@@ -91,6 +98,7 @@ fn main(
                     acc[c] = acc[c] + w * features[f + c];
                 }
                 tr = test;
+                last = start + j + 1u;
             }
         }
         workgroupBarrier();
@@ -100,6 +108,10 @@ fn main(
         let o = y * p.width + x;
         for (var c = 0u; c < C; c = c + 1u) {
             image[c * plane + o] = acc[c] + tr * background[c];
+        }
+        if (STATE) {
+            state_t[o] = tr;
+            state_n[o] = last;
         }
     }
 }

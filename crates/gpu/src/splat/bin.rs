@@ -36,6 +36,12 @@ pub struct Bins {
     /// `sizes[SLOT_PAIRS_TOTAL]` is the frame's pair count before clamping to the capacity.
     pub sizes: wgpu::Buffer,
     pub capacity: usize,
+    /// Gaussian ids in depth order (culled ones last).
+    pub depth_vals: wgpu::Buffer,
+    /// Per depth rank: tiles covered, and where its pairs start before the sort by tile (the
+    /// backward finds each pair's slot from them).
+    pub counts: wgpu::Buffer,
+    pub offsets: wgpu::Buffer,
 }
 
 /// Builds the binning for `n` Gaussians, a `grid_x x grid_y` tile grid and room for
@@ -212,5 +218,8 @@ pub fn build(
         pair_vals: tvals.clone(),
         sizes,
         capacity: cap,
+        depth_vals: dvals.clone(),
+        counts,
+        offsets,
     })
 }

@@ -62,10 +62,10 @@ pub struct GpuSplat {
     opacities: wgpu::Buffer,
     scales: wgpu::Buffer,
     rotations: wgpu::Buffer,
-    features: wgpu::Buffer,
-    background: wgpu::Buffer,
-    proj: project::Projected,
-    bins: bin::Bins,
+    pub(crate) features: wgpu::Buffer,
+    pub(crate) background: wgpu::Buffer,
+    pub(crate) proj: project::Projected,
+    pub(crate) bins: bin::Bins,
     project: Step,
     raster: Step,
     /// `[C, H, W]` f32, the splatted feature image.
@@ -223,6 +223,7 @@ impl GpuSplat {
             &features,
             &background,
             &image,
+            None,
         )?;
         Ok(Self {
             n,
@@ -310,6 +311,7 @@ impl GpuSplat {
             &self.features,
             &self.background,
             &self.image,
+            None,
         )?;
         Ok(true)
     }

@@ -6,6 +6,9 @@ use crate::kernel::{Bind, Grid, Params, Step};
 
 const RASTER: &str = include_str!("../shaders/raster.wgsl");
 
+/// The compositing step; with `state` (training: the final transmittance `[H, W]` f32 and one
+/// past the last contributor's list position `[H, W]` u32) it also keeps what the backward
+/// needs.
 #[allow(clippy::too_many_arguments)]
 pub fn step(
     gpu: &Gpu,
@@ -18,16 +21,29 @@ pub fn step(
     features: &wgpu::Buffer,
     background: &wgpu::Buffer,
     image: &wgpu::Buffer,
+    state: Option<(&wgpu::Buffer, &wgpu::Buffer)>,
 ) -> Result<Step> {
     let mut binds = vec![Bind::Uniform];
     binds.extend([Bind::Read; 5]);
-    binds.push(Bind::ReadWrite);
+    binds.extend([Bind::ReadWrite; 3]);
     let k = gpu.kernel(
         "raster",
         RASTER,
-        &[("CHANNELS", channels.to_string())],
+        &[
+            ("CHANNELS", channels.to_string()),
+            ("STATE", state.is_some().to_string()),
+        ],
         &binds,
     )?;
+    let unused;
+    let (state_t, state_n) = match state {
+        Some(s) => s,
+        None => {
+            // Two: writable bindings must not alias.
+            unused = [0, 1].map(|_| gpu.buffer("raster state (inference: unused)", 16));
+            (&unused[0], &unused[1])
+        }
+    };
     let grid_x = width.div_ceil(16);
     let grid_y = height.div_ceil(16);
     let p = gpu.uniform(
@@ -39,7 +55,9 @@ pub fn step(
     );
     let g = gpu.bind(
         &k,
-        &[&p, ranges, pair_vals, splats, features, background, image],
+        &[
+            &p, ranges, pair_vals, splats, features, background, image, state_t, state_n,
+        ],
     )?;
     Ok(Step::new(
         k,
