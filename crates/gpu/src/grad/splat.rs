@@ -1,13 +1,16 @@
-//! The splatting's backward on the GPU, its compositing part: from dL/dimage to the gradients
-//! of every Gaussian's features and screen-space quantities (mean x, mean y, conic A, B, C,
-//! opacity: [`gagavatar_splat::raster::Grads2D`]'s layout) and of the background.
+//! The splatting's backward on the GPU: from dL/dimage to the gradients of every Gaussian's
+//! features and screen-space quantities (mean x, mean y, conic A, B, C, opacity:
+//! [`gagavatar_splat::raster::Grads2D`]'s layout), of the background, and through the
+//! projection to its mean, opacity, scale and quaternion (`project_backward.wgsl`,
+//! [`gagavatar_splat::project::project_backward`]'s).
 //!
 //! The training forward is the inference one with the compositing keeping, per pixel, its
 //! final transmittance and one past the last Gaussian it took (`raster.wgsl` with `STATE`).
 //! The backward has three steps: each Gaussian's pair slots (`splat_pair_info.wgsl`), the
 //! compositing's gradient per (tile, Gaussian) pair summed over the tile's pixels
 //! (`raster_backward.wgsl`), and each Gaussian's pairs summed in the order of its tiles
-//! (`splat_grad_sum.wgsl`): no atomics on floats, the same gradients on every run.
+//! (`splat_grad_sum.wgsl`): no atomics on floats, the same gradients on every run. A fourth
+//! takes each Gaussian's screen-space gradients through the projection.
 
 use gagavatar_splat::Camera;
 
@@ -19,6 +22,10 @@ use crate::splat::{bin, raster, GpuSplat};
 const PAIR_INFO: &str = include_str!("../shaders/splat_pair_info.wgsl");
 const RASTER_BACKWARD: &str = include_str!("../shaders/raster_backward.wgsl");
 const GRAD_SUM: &str = include_str!("../shaders/splat_grad_sum.wgsl");
+const PROJECT_BACKWARD: &str = include_str!("../shaders/project_backward.wgsl");
+
+/// Gradients per Gaussian through the projection: mean (3), opacity, scale (3), quaternion (4).
+pub const GEOM: usize = 11;
 
 /// Screen-space quantities per Gaussian after its features.
 pub const SCREEN: usize = 6;
@@ -32,6 +39,9 @@ pub struct SplatGrads {
     pub screen: Vec<f32>,
     /// `[C]`
     pub background: Vec<f32>,
+    /// `[N, 11]`: mean (3), opacity, scale (3), quaternion (r, x, y, z); zeros for culled
+    /// Gaussians.
+    pub geom: Vec<f32>,
 }
 
 /// The per-pixel state of a training forward, read back (for tests and tools).
@@ -57,6 +67,8 @@ pub struct GpuSplatGrad {
     pub grad_image: wgpu::Buffer,
     /// `[N, C + 6]`, then the background's `[C]`.
     pub grads: wgpu::Buffer,
+    /// `[N, 11]`, see [`SplatGrads::geom`].
+    pub geom_grads: wgpu::Buffer,
     raster: Step,
     backward: Vec<Step>,
 }
@@ -89,6 +101,10 @@ impl GpuSplatGrad {
             4 * (bg_off + tiles * c).max(1) as u64,
         );
         let grads = gpu.buffer("splat gradients", 4 * (n * s + c) as u64);
+        let geom_grads = gpu.buffer(
+            "splat gradients through the projection",
+            4 * (n * GEOM).max(1) as u64,
+        );
         let bins: &bin::Bins = &splat.bins;
         let raster = raster::step(
             gpu,
@@ -187,6 +203,32 @@ impl GpuSplatGrad {
             gpu.bind(&k, &[&u, &info, &pairs, &grads])?,
             linear_grid(n + c, 64),
         );
+        let mut binds = vec![Bind::Uniform];
+        binds.extend([Bind::Read; 6]);
+        binds.push(Bind::ReadWrite);
+        let k = gpu.kernel(
+            "project_backward",
+            PROJECT_BACKWARD,
+            &[("CHANNELS", c.to_string())],
+            &binds,
+        )?;
+        let project = Step::new(
+            k.clone(),
+            gpu.bind(
+                &k,
+                &[
+                    &splat.camera,
+                    &splat.head,
+                    &splat.rest,
+                    &splat.scales,
+                    &splat.rotations,
+                    &splat.proj.rects,
+                    &grads,
+                    &geom_grads,
+                ],
+            )?,
+            linear_grid(n, 256),
+        );
         Ok(Self {
             n,
             channels: c,
@@ -197,8 +239,9 @@ impl GpuSplatGrad {
             state_n,
             grad_image,
             grads,
+            geom_grads,
             raster,
-            backward: vec![info_step, raster_bwd, sum],
+            backward: vec![info_step, raster_bwd, sum, project],
         })
     }
 
@@ -252,6 +295,7 @@ impl GpuSplatGrad {
             features,
             screen,
             background: all[n * s..].to_vec(),
+            geom: gpu.read_f32(&self.geom_grads, n * GEOM)?,
         })
     }
 

@@ -6,7 +6,7 @@
 //! that state is checked against the CPU forward's on its own.
 
 use gagavatar_splat::binning::bin;
-use gagavatar_splat::project::{project, CamK};
+use gagavatar_splat::project::{project, project_backward, CamK, GEOM};
 use gagavatar_splat::raster::{backward, forward, Frame, PixelState};
 use gagavatar_splat::testscene::{avatar_scene, Regime, Rng};
 use gagavatar_splat::{Camera, GaussianScene};
@@ -20,6 +20,10 @@ use crate::{Gpu, Tuning};
 /// other orders (per-tile trees against the CPU's lanes), each term's f32 operations are the
 /// same up to fused multiply-adds.
 const GRAD_RTOL: f64 = 1e-4;
+
+/// Through the projection: the same operations (a driver may fuse some), the conic's inverse
+/// and the clamped Jacobian amplifying an ulp of thin Gaussians' covariances.
+const GEOM_RTOL: f64 = 1e-4;
 
 /// Pixels whose forward state (final transmittance or last Gaussian) may differ from the
 /// CPU's: a transmittance stop within rounding of 1e-4 (see the splatting's `RASTER_TOL`).
@@ -200,6 +204,33 @@ fn compare(
             &pick(&got.screen),
             GRAD_RTOL,
         );
+    }
+    // Through the projection, from the GPU's own screen-space gradients (checked above).
+    let mut want = vec![0f32; n * GEOM];
+    project_backward(&k, &geom, &got.screen, &proj.radius, &mut want);
+    // The CPU's are four blocks, [means (3N) | opacities (N) | scales (3N) | quaternions (4N)];
+    // the GPU's a row of 11 per Gaussian.
+    let gg = &got.geom;
+    let rows = |first: usize, width: usize| -> Vec<f32> {
+        (0..n)
+            .flat_map(|i| (0..width).map(move |k| gg[i * GEOM + first + k]))
+            .collect()
+    };
+    let blocks = [
+        ("mean", 0, 3),
+        ("opacity", 3, 1),
+        ("scale", 4, 3),
+        ("quaternion", 7, 4),
+    ];
+    let mut at = 0;
+    for (name, first, width) in blocks {
+        check(
+            &format!("{label}: d {name} through the projection"),
+            &want[at..at + n * width],
+            &rows(first, width),
+            GEOM_RTOL,
+        );
+        at += n * width;
     }
     got
 }
