@@ -13,7 +13,8 @@
 set -u
 # FRAMES, SWEEP_FRAMES, REENACT_FRAMES, RECONSTRUCT_RUNS, GRAD_RUNS, PRESET and TESTS (a
 # test-name filter) shrink the run for a dry run on lavapipe; SKIP_TESTS=1 leaves the parity
-# tests out. STEPS (drive reconstruct grad reenact tests sweep), DRIVE_RUNS (small large f16),
+# tests out. STEPS (drive reconstruct grad splat reenact tests sweep; SPLAT_PLANE shrinks the
+# splat scene), DRIVE_RUNS (small large f16),
 # RECONSTRUCT_PRECISIONS and REENACT_PRECISIONS (f16 f32) pick what a later call redoes.
 FRAMES=${FRAMES:-300}
 SWEEP_FRAMES=${SWEEP_FRAMES:-40}
@@ -69,7 +70,7 @@ nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm --format=c
 cat "$OUT/nvidia_smi.csv" >> "$OUT/summary.txt"
 
 # STEPS picks sections (a second call after a fix need not redo the rest).
-STEPS=${STEPS:-drive reconstruct grad reenact tests sweep}
+STEPS=${STEPS:-drive reconstruct grad splat reenact tests sweep}
 want() { case " $STEPS " in *" $1 "*) return 0 ;; *) return 1 ;; esac; }
 
 want drive && {
@@ -116,6 +117,14 @@ timeout 90 "$BIN/gagavatar" bench renderer-grad --device gpu --preset "$PRESET" 
     > "$OUT/bench_renderer_grad.txt" 2>&1
 echo "exit $? (renderer-grad)" >> "$OUT/summary.txt"
 tail -5 "$OUT/bench_renderer_grad.txt" >> "$OUT/summary.txt"
+}
+
+want splat && {
+log "bench splat (training forward + backward of the splatting, issue 31), ${SPLAT_PLANE:-296}-point planes, ${GRAD_RUNS:-10} runs"
+timeout 120 "$BIN/gagavatar" bench splat --device gpu --regime both --plane "${SPLAT_PLANE:-296}" \
+    --runs "${GRAD_RUNS:-10}" > "$OUT/bench_splat.txt" 2>&1
+echo "exit $? (splat)" >> "$OUT/summary.txt"
+grep -E "^splat|^error" "$OUT/bench_splat.txt" >> "$OUT/summary.txt"
 }
 
 want reenact && {

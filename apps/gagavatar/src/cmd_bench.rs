@@ -12,9 +12,11 @@ use std::time::Instant;
 #[derive(Debug, Subcommand)]
 pub enum BenchCmd {
     /// Splatting forward and backward on the avatar-like scene (2 lifted 296x296 planes + 5023
-    /// head points, camera at distance 9, focal 12, 512x512, 32 channels).
+    /// head points, camera at distance 9, focal 12, 512x512, 32 channels): on the CPU, or the
+    /// training forward and backward (every Gaussian's gradients) on a GPU.
     #[command(
-        after_help = "Example:\n  gagavatar bench splat --regime small --runs 20 --threads 2"
+        after_help = "Example:\n  gagavatar bench splat --regime small --runs 20 --threads 2\n  \
+gagavatar bench splat --device gpu --regime both --runs 20"
     )]
     Splat(SplatBench),
     /// The network: reconstruct (per module) and drive (splat + renderer) on one frame.
@@ -208,6 +210,8 @@ pub struct SplatBench {
     /// Points per side of each lifted plane.
     #[arg(long, default_value_t = 296)]
     plane: usize,
+    #[command(flatten)]
+    device: crate::device_args::DeviceArgs,
 }
 
 pub fn run(cmd: BenchCmd) -> Result<()> {
@@ -240,8 +244,32 @@ fn bench_splat(args: SplatBench) -> Result<()> {
         RegimeArg::Both => &[Regime::Small, Regime::Large],
     };
     let runs = args.runs.max(1);
+    // The splatting's training kernels are f32 whatever the adapter offers.
+    let gpu = args
+        .device
+        .open_for_training("splatting forward + backward")?;
     for &regime in regimes {
         let (scene, cam) = avatar_scene(args.plane, 5023, args.channels, regime, 1);
+        if let Some(gpu) = &gpu {
+            let tuning = args.device.tuning(gpu)?;
+            let bg = vec![0f32; args.channels];
+            let t = crate::cmd_bench_splat_gpu::time(gpu, &tuning, &scene, &bg, &cam, runs)?;
+            println!(
+                "splat {regime:?} on the GPU ({}{}): {} Gaussians, {}x{}, {} channels: training \
+                 forward median {:.2} ms, backward median {:.2} ms, tile pairs {}, GPU buffers {:.0} MiB",
+                gpu.describe(),
+                if gpu.is_cpu() { ", CPU-EMULATED: says nothing about a real GPU" } else { "" },
+                scene.len(),
+                cam.width,
+                cam.height,
+                args.channels,
+                t.forward,
+                t.backward,
+                t.pairs,
+                t.mib
+            );
+            continue;
+        }
         let dev = Device::Cpu;
         let tensors = scene.to_tensors(&dev)?;
         let bg = Tensor::zeros(args.channels, candle_core::DType::F32, &dev)?;

@@ -8,6 +8,7 @@ mod cmd_bench_drive;
 mod cmd_bench_reconstruct;
 mod cmd_bench_renderer_grad;
 mod cmd_bench_serve;
+mod cmd_bench_splat_gpu;
 mod cmd_demo;
 mod cmd_eval;
 mod cmd_face;

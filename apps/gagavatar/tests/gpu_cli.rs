@@ -413,6 +413,43 @@ fn bench_renderer_grad_runs_on_both_devices() {
     );
 }
 
+/// `bench splat --device gpu` times the splatting's training forward and backward.
+#[test]
+fn bench_splat_runs_the_backward_on_the_gpu() {
+    let out = run(
+        &[
+            "bench",
+            "splat",
+            "--device",
+            "gpu",
+            "--plane",
+            "4",
+            "--channels",
+            "4",
+            "--runs",
+            "1",
+            "--regime",
+            "small",
+        ],
+        &[],
+    );
+    if !have_gpu(&out) {
+        return;
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    for want in [
+        "on the GPU",
+        "training forward median",
+        "backward median",
+        "tile pairs",
+    ] {
+        assert!(
+            text.contains(want),
+            "bench splat --device gpu: no `{want}` in\n{text}"
+        );
+    }
+}
+
 #[test]
 fn no_adapter_is_one_line_for_gpu_and_a_fallback_for_auto() {
     let env = [("GAGAVATAR_GPU_ADAPTER", NO_SUCH_ADAPTER)];

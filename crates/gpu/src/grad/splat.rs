@@ -263,6 +263,31 @@ impl GpuSplatGrad {
                 == (self.n, self.channels, self.width, self.height)
     }
 
+    /// Submits the training forward (`splat`'s projection and binning, then the compositing
+    /// that keeps the per-pixel state) without waiting. The caller checks the pair count
+    /// ([`GpuSplat::sizes`]) before trusting the frame.
+    pub fn submit_forward(&self, gpu: &Gpu, splat: &GpuSplat) {
+        let mut enc = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("splat training forward"),
+            });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
+            for s in splat.bin_steps() {
+                s.record(&mut pass);
+            }
+            record_all(&mut pass, std::slice::from_ref(&self.raster));
+        }
+        gpu.queue.submit([enc.finish()]);
+    }
+
+    /// Submits the backward (after a training forward, with dL/dimage written) without
+    /// waiting.
+    pub fn submit_backward(&self, gpu: &Gpu) {
+        gpu.submit(&self.backward);
+    }
+
     /// Writes dL/dimage `[C, H, W]`.
     pub fn set_grad_output(&self, gpu: &Gpu, grad: &[f32]) -> Result<()> {
         let want = self.channels * self.width * self.height;
@@ -323,35 +348,14 @@ impl GpuSplatGrad {
             if !self.fits(splat) {
                 *self = Self::new(gpu, splat)?;
             }
-            let mut enc = gpu
-                .device
-                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some("splat training forward"),
-                });
-            {
-                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
-                for s in splat.bin_steps() {
-                    s.record(&mut pass);
-                }
-                record_all(&mut pass, std::slice::from_ref(&self.raster));
-            }
-            gpu.queue.submit([enc.finish()]);
+            self.submit_forward(gpu, splat);
             let total = gpu.read_u32(splat.sizes(), 1)?[0] as usize;
             if !splat.grow(gpu, total)? {
                 break;
             }
         }
         self.set_grad_output(gpu, grad)?;
-        let mut enc = gpu
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("splat backward"),
-            });
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor::default());
-            record_all(&mut pass, &self.backward);
-        }
-        gpu.queue.submit([enc.finish()]);
+        self.submit_backward(gpu);
         let image = gpu.read_f32(&splat.image, self.channels * self.width * self.height)?;
         Ok((image, self.read(gpu)?))
     }
