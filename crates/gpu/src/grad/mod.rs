@@ -15,6 +15,7 @@
 pub mod conv;
 pub mod decoder;
 pub mod layers;
+pub mod lifting;
 pub mod modconv;
 pub mod optim;
 pub mod params;
