@@ -13,6 +13,7 @@
 //! trajectory test needs every rank's gradients to be reproducible).
 
 pub mod conv;
+pub mod crop;
 pub mod decoder;
 pub mod layers;
 pub mod lifting;
