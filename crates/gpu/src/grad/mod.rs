@@ -15,6 +15,7 @@
 pub mod conv;
 pub mod crop;
 pub mod decoder;
+pub mod image_loss;
 pub mod layers;
 pub mod lifting;
 pub mod modconv;

@@ -1,0 +1,264 @@
+//! The training loss's image terms on the GPU (spec section 11, `gagavatar_train::losses`):
+//! `img = 0.5 (L1(coarse_rgb, gt) + L1(fine, gt))` and `box = 0.5 (L1(coarse_rgb crop, gt crop)
+//! + L1(fine crop, gt crop))` on the target's head box resized to `box_size`, with `L1` the
+//! mean absolute difference and PyTorch's `sign(0) = 0` gradient. Their values, and their
+//! gradients with respect to the splatted image (its first three channels; the splatting
+//! backward reads the whole `[C, H, W]`) and the renderer's output.
+//!
+//! The box changes with every sample, so the steps are built per sample ([`GpuImageLosses::new`]
+//! is cheap once the kernels are compiled).
+
+use crate::conv::At;
+use crate::device::Gpu;
+use crate::error::{input_err, Result};
+use crate::grad::crop::{CropBox, GpuCropResize};
+use crate::grad::layers::l1_grad;
+use crate::kernel::{Bind, Grid, Params, Step};
+
+const L1_SUM: &str = include_str!("../shaders/l1_sum.wgsl");
+
+/// The terms' values: `img`, `box`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ImageTerms {
+    pub img: f32,
+    pub box_l1: f32,
+}
+
+/// One sample's image terms.
+pub struct GpuImageLosses {
+    /// `[4]`: the four L1 means, each already halved (img coarse, img fine, box coarse, box
+    /// fine).
+    values: wgpu::Buffer,
+    steps: Vec<Step>,
+}
+
+fn l1_sum(
+    gpu: &Gpu,
+    n: usize,
+    a: At,
+    b: At,
+    scale: f32,
+    out: &wgpu::Buffer,
+    slot: u32,
+) -> Result<Step> {
+    let k = gpu.kernel(
+        "l1_sum",
+        L1_SUM,
+        &[],
+        &[Bind::Uniform, Bind::Read, Bind::Read, Bind::ReadWrite],
+    )?;
+    let u = gpu.uniform(
+        "l1 sum",
+        &Params::new()
+            .u(n as u32)
+            .u(a.off)
+            .u(b.off)
+            .u(slot)
+            .f(scale)
+            .u(0)
+            .u(0)
+            .u(0),
+    );
+    let g = gpu.bind(&k, &[&u, a.buf, b.buf, out])?;
+    Ok(Step::new(k, g, Grid::Fixed([1, 1, 1])))
+}
+
+impl GpuImageLosses {
+    /// The terms for `coarse` `[c, h, w]` (c >= 3), `fine` and `gt` `[3, h, w]`, the head box
+    /// `b` resized to `box_size`; gradients into `d_coarse` (its first three channels are
+    /// written, the others left as they are: zeros for a buffer made for it) and `d_fine`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        gpu: &Gpu,
+        (c, h, w): (usize, usize, usize),
+        b: CropBox,
+        box_size: usize,
+        coarse: &wgpu::Buffer,
+        fine: &wgpu::Buffer,
+        gt: &wgpu::Buffer,
+        d_coarse: &wgpu::Buffer,
+        d_fine: &wgpu::Buffer,
+    ) -> Result<Self> {
+        if c < 3 {
+            return Err(input_err(
+                "coarse image",
+                format!("{c} channels (the loss reads the first 3)"),
+            ));
+        }
+        let n = 3 * h * w;
+        for (name, buf, floats) in [
+            ("coarse image", coarse, c * h * w),
+            ("fine image", fine, n),
+            ("target image", gt, n),
+            ("dL/dcoarse", d_coarse, c * h * w),
+            ("dL/dfine", d_fine, n),
+        ] {
+            if buf.size() < 4 * floats as u64 {
+                return Err(input_err(
+                    name,
+                    format!("a {}-byte buffer for {floats} values", buf.size()),
+                ));
+            }
+        }
+        let ns = 3 * box_size * box_size;
+        let crop_buf = |what: &str| gpu.buffer(what, 4 * ns as u64);
+        let (cc, fc, gc) = (
+            crop_buf("coarse crop"),
+            crop_buf("fine crop"),
+            crop_buf("target crop"),
+        );
+        let (dcc, dfc) = (crop_buf("dL/dcoarse crop"), crop_buf("dL/dfine crop"));
+        let values = gpu.buffer("image loss terms", 16);
+        let img_scale = 0.5 / n as f32;
+        let box_scale = 0.5 / ns as f32;
+        let dims = (3, h, w);
+        let crop_c = GpuCropResize::new(gpu, dims, b, box_size, coarse, &cc, &dcc, d_coarse)?;
+        let crop_f = GpuCropResize::new(gpu, dims, b, box_size, fine, &fc, &dfc, d_fine)?;
+        // The target's crop: only its forward runs (the target has no gradient).
+        let crop_g = GpuCropResize::new(gpu, dims, b, box_size, gt, &gc, &dcc, d_coarse)?;
+        let at = At::new;
+        let mut steps = vec![
+            crop_c.forward().clone(),
+            crop_f.forward().clone(),
+            crop_g.forward().clone(),
+            l1_sum(gpu, n, at(coarse), at(gt), img_scale, &values, 0)?,
+            l1_sum(gpu, n, at(fine), at(gt), img_scale, &values, 1)?,
+            l1_sum(gpu, ns, at(&cc), at(&gc), box_scale, &values, 2)?,
+            l1_sum(gpu, ns, at(&fc), at(&gc), box_scale, &values, 3)?,
+            // The whole-image terms write the gradients, the box terms add to them.
+            l1_grad(gpu, n, at(coarse), at(gt), img_scale, at(d_coarse))?,
+            l1_grad(gpu, n, at(fine), at(gt), img_scale, at(d_fine))?,
+            l1_grad(gpu, ns, at(&cc), at(&gc), box_scale, at(&dcc))?,
+            l1_grad(gpu, ns, at(&fc), at(&gc), box_scale, at(&dfc))?,
+        ];
+        steps.extend(crop_c.backward().iter().cloned());
+        steps.extend(crop_f.backward().iter().cloned());
+        Ok(Self { values, steps })
+    }
+
+    /// The forward, the values and the gradients, in order.
+    pub fn steps(&self) -> &[Step] {
+        &self.steps
+    }
+
+    /// The terms after the steps ran.
+    pub fn read(&self, gpu: &Gpu) -> Result<ImageTerms> {
+        let v = gpu.read_f32(&self.values, 4)?;
+        Ok(ImageTerms {
+            img: v[0] + v[1],
+            box_l1: v[2] + v[3],
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testutil::gpu;
+    use candle_core::{Device, Tensor, Var};
+    use gagavatar_splat::testscene::Rng;
+    use gagavatar_train::{LossConfig, LossInputs, TrainLosses};
+
+    /// The terms and every gradient against the CPU loss through candle's autograd: the same
+    /// operations, other summation orders.
+    const LOSS_RTOL: f64 = 1e-5;
+
+    /// A 5-channel splatted image, a head box from a bbox as the trainer computes it, some
+    /// pixels equal to the target's (sign(0) = 0 there), against `TrainLosses` with the
+    /// perceptual and lifting terms off.
+    #[test]
+    fn image_terms_and_gradients_match_the_cpu_loss() {
+        let Some(g) = gpu() else { return };
+        let mut rng = Rng::new(8);
+        let (c, h, w, size) = (5, 36, 44, 24);
+        let mut rand =
+            |k: usize| -> Vec<f32> { (0..k).map(|_| rng.range(0.0, 1.0) as f32).collect() };
+        let gt = rand(3 * h * w);
+        let mut coarse = rand(c * h * w);
+        let fine = rand(3 * h * w);
+        coarse[..40].copy_from_slice(&gt[..40]);
+        let bbox = [0.3f32, 0.25, 0.7, 0.8];
+        let hb = gagavatar_train::head_box(bbox, h, w).unwrap();
+        let b = CropBox {
+            x0: hb.x0,
+            y0: hb.y0,
+            x1: hb.x1,
+            y1: hb.y1,
+        };
+        let bufs = [&coarse, &fine, &gt].map(|v| g.buffer_with("image", v));
+        let d_coarse = g.buffer_with("dL/dcoarse", &vec![0f32; c * h * w]);
+        let d_fine = g.buffer("dL/dfine", 4 * (3 * h * w) as u64);
+        let losses = GpuImageLosses::new(
+            g,
+            (c, h, w),
+            b,
+            size,
+            &bufs[0],
+            &bufs[1],
+            &bufs[2],
+            &d_coarse,
+            &d_fine,
+        )
+        .unwrap();
+        g.submit(losses.steps());
+        let got = losses.read(g).unwrap();
+        let got_dc = g.read_f32(&d_coarse, c * h * w).unwrap();
+        let got_df = g.read_f32(&d_fine, 3 * h * w).unwrap();
+
+        let dev = Device::Cpu;
+        let var = |v: &[f32], ch: usize| {
+            Var::from_tensor(&Tensor::from_vec(v.to_vec(), (1, ch, h, w), &dev).unwrap()).unwrap()
+        };
+        let (vc, vf) = (var(&coarse, c), var(&fine, 3));
+        let gtt = Tensor::from_vec(gt, (1, 3, h, w), &dev).unwrap();
+        let bb = Tensor::from_vec(bbox.to_vec(), (1, 4), &dev).unwrap();
+        let pts = Tensor::zeros((1, 1, 3), candle_core::DType::F32, &dev).unwrap();
+        let cfg = LossConfig {
+            box_size: size,
+            lifting: false,
+            percep_weight: 0.0,
+        };
+        let terms = TrainLosses::new(cfg, None)
+            .compute(&LossInputs {
+                coarse: vc.as_tensor(),
+                fine: vf.as_tensor(),
+                gt: &gtt,
+                bbox: &bb,
+                lifted: &pts,
+                targets: &pts,
+            })
+            .unwrap();
+        assert_eq!(terms.boxes[0], hb);
+        for (what, want, got) in [
+            ("img", terms.img.value, got.img),
+            ("box", terms.box_l1.value, got.box_l1),
+        ] {
+            let d = (want - got as f64).abs();
+            eprintln!("{what}: GPU {got}, CPU {want} (difference {d:e})");
+            assert!(
+                d <= LOSS_RTOL * want.abs(),
+                "{what}: expected {want}, got {got}"
+            );
+        }
+        let grads = terms.total.tensor.backward().unwrap();
+        for (what, v, got) in [("dL/dcoarse", &vc, &got_dc), ("dL/dfine", &vf, &got_df)] {
+            let want: Vec<f32> = grads
+                .get(v.as_tensor())
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap();
+            let scale = want.iter().fold(0f64, |m, x| m.max(x.abs() as f64));
+            for (i, (a, b)) in want.iter().zip(got.iter()).enumerate() {
+                let d = (*a as f64 - *b as f64).abs();
+                assert!(
+                    d <= LOSS_RTOL * scale,
+                    "{what}: index {i}: expected {a}, got {b} (difference {d:e})"
+                );
+            }
+        }
+        // Channels past the RGB and the pixels equal to the target carry no gradient.
+        assert!(got_dc[3 * h * w..].iter().all(|&v| v == 0.0));
+    }
+}
