@@ -13,6 +13,7 @@
 //! words ([`PackedB`]). The micro-kernel keeps an `MR x NR` tile of C in 24 registers and, for
 //! each pair of K, loads two panel vectors and broadcasts one word of each of the `MR` rows.
 
+use crate::conv::elem::SendPtr;
 use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp1, Layout, Shape, Tensor};
 use rayon::prelude::*;
@@ -282,6 +283,7 @@ pub(crate) unsafe fn gemm(
     }
     let panels = n.div_ceil(NR);
     let m_blocks = m.div_ceil(M_BLOCK);
+    // The tasks that share the pointer write disjoint parts of C (see `matmul`).
     let c = SendPtr(c);
     let task = |task: usize| {
         let (mb, panel) = (task / panels, task % panels);
@@ -524,17 +526,6 @@ impl CustomOp1 for Bf16Linear {
             *last = self.weight.n;
         }
         Ok((CpuStorage::F32(out), Shape::from(shape)))
-    }
-}
-
-#[derive(Clone, Copy)]
-struct SendPtr(*mut f32);
-// SAFETY: the tasks that share the pointer write disjoint parts of C (see `matmul`).
-unsafe impl Send for SendPtr {}
-unsafe impl Sync for SendPtr {}
-impl SendPtr {
-    fn get(self) -> *mut f32 {
-        self.0
     }
 }
 
