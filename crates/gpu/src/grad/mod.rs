@@ -21,6 +21,7 @@ pub mod lifting;
 pub mod modconv;
 pub mod optim;
 pub mod params;
+pub mod render_step;
 pub mod renderer;
 pub mod splat;
 
@@ -28,7 +29,7 @@ pub mod splat;
 mod tests;
 
 #[cfg(test)]
-mod renderer_tests;
+pub(crate) mod renderer_tests;
 
 #[cfg(test)]
 mod splat_tests;

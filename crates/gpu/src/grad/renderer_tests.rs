@@ -211,13 +211,13 @@ fn decoder_gradients_match_candle_autograd() {
 /// candle's autograd through `StyleUNet` at the tiny preset: the output, the gradient of the
 /// splatted input and of every parameter the forward uses.
 /// The CPU renderer, its variables by key, and their values for the GPU.
-type SeededRenderer = (StyleUNet, Vec<(String, Var)>, HashMap<String, Vec<f32>>);
+pub(crate) type SeededRenderer = (StyleUNet, Vec<(String, Var)>, HashMap<String, Vec<f32>>);
 
 /// Variables by key, and their values by key.
 type SeededVars = (Vec<(String, Var)>, HashMap<String, Vec<f32>>);
 
 /// The tiny renderer on the CPU with every weight a variable, drawn by [`fan_in`].
-fn seeded_renderer(cfg: &ModelConfig, seed: u64) -> SeededRenderer {
+pub(crate) fn seeded_renderer(cfg: &ModelConfig, seed: u64) -> SeededRenderer {
     let dev = Device::Cpu;
     let varmap = VarMap::new();
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
