@@ -32,15 +32,7 @@ pub fn time(
     cam: &Camera,
     runs: usize,
 ) -> Result<GpuSplatTimes> {
-    let inputs = SplatInputs {
-        means: &scene.means,
-        features: &scene.features,
-        channels: scene.channels,
-        opacities: &scene.opacities,
-        scales: &scene.scales,
-        rotations: &scene.rotations,
-        background,
-    };
+    let inputs = SplatInputs::from_scene(scene, background);
     let mut splat = GpuSplat::new(gpu, tuning, &inputs, None, 0, cam.width, cam.height)?;
     let mut grad = GpuSplatGrad::new(gpu, &splat)?;
     let values = scene.channels * cam.width * cam.height;

@@ -77,6 +77,22 @@ pub fn assert_close(what: &str, want: &[f32], got: &[f32], tol: f64) {
     eprintln!("{what}: max abs difference {d:e} (tolerance {tol:e})");
 }
 
+/// Asserts `max |want - got| <= rtol * max |want|` (gradients and images whose scale the
+/// test does not know beforehand), naming the worst index and both values.
+pub fn assert_close_rel(what: &str, want: &[f32], got: &[f32], rtol: f64) {
+    let scale = want
+        .iter()
+        .fold(0f64, |m, v| m.max(v.abs() as f64))
+        .max(1e-12);
+    let (d, i, w, g) = max_diff(want, got);
+    eprintln!("{what}: max abs difference {d:e} of the largest value {scale:e}");
+    assert!(
+        d <= rtol * scale,
+        "{what}: max abs difference {d:e} > {:e} at index {i}: expected {w}, got {g}",
+        rtol * scale
+    );
+}
+
 /// Splatting is discontinuous: a Gaussian whose alpha at a pixel lies within rounding of 1/255
 /// is taken on one side and skipped on the other, and a GPU may round its projection
 /// differently from the CPU (a driver may fuse multiply-adds: SPIR-V allows it unless told

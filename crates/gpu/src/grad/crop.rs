@@ -64,18 +64,17 @@ pub struct GpuCropResize {
 }
 
 impl GpuCropResize {
-    /// The crop `b` of `image` `[c, h, w]` resized into `out` `[c, size, size]`; the backward
-    /// reads dL/d`out` from `grad_out` and adds dL/d`image` into `grad_image` `[c, h, w]`.
-    #[allow(clippy::too_many_arguments)]
+    /// The crop `b` of `image` `[c, h, w]` resized into `out` `[c, size, size]`. With
+    /// `grad = Some((grad_out, grad_image))` also the backward, which reads dL/d`out` from
+    /// `grad_out` and adds dL/d`image` into `grad_image` `[c, h, w]`; without it (an image that
+    /// needs no gradient, such as the target) [`GpuCropResize::backward`] is empty.
     pub fn new(
         gpu: &Gpu,
         (c, h, w): (usize, usize, usize),
         b: CropBox,
         size: usize,
-        image: &wgpu::Buffer,
-        out: &wgpu::Buffer,
-        grad_out: &wgpu::Buffer,
-        grad_image: &wgpu::Buffer,
+        (image, out): (&wgpu::Buffer, &wgpu::Buffer),
+        grad: Option<(&wgpu::Buffer, &wgpu::Buffer)>,
     ) -> Result<Self> {
         if b.x1 <= b.x0 || b.y1 <= b.y0 || b.x1 > w || b.y1 > h {
             return Err(input_err(
@@ -89,12 +88,12 @@ impl GpuCropResize {
                 format!("{c} channels resized to {size}x{size}"),
             ));
         }
-        for (name, buf, floats) in [
-            ("image", image, c * h * w),
-            ("crop", out, c * size * size),
-            ("dL/dcrop", grad_out, c * size * size),
-            ("dL/dimage", grad_image, c * h * w),
-        ] {
+        let mut sized = vec![("image", image, c * h * w), ("crop", out, c * size * size)];
+        if let Some((grad_out, grad_image)) = grad {
+            sized.push(("dL/dcrop", grad_out, c * size * size));
+            sized.push(("dL/dimage", grad_image, c * h * w));
+        }
+        for (name, buf, floats) in sized {
             if buf.size() < 4 * floats as u64 {
                 return Err(input_err(
                     name,
@@ -157,8 +156,11 @@ impl GpuCropResize {
         .with_note(format!("crop {cw}x{ch} -> {size}"));
 
         // Backward: columns (dL/dcrop -> t [c, size, cw]), then rows, added into the image's.
-        let t = gpu.buffer("crop backward: columns", 4 * (c * size * cw) as u64);
         let mut backward = Vec::new();
+        let Some((grad_out, grad_image)) = grad else {
+            return Ok(Self { forward, backward });
+        };
+        let t = gpu.buffer("crop backward: columns", 4 * (c * size * cw) as u64);
         for (axis_x, taps, input, a, src, dst) in [
             (true, &tx, cw, size, grad_out, &t),
             (false, &ty, ch, cw, &t, grad_image),
@@ -285,9 +287,15 @@ mod tests {
             let out = g.buffer("crop", 4 * (c * size * size) as u64);
             let grad_out = g.buffer_with("dL/dcrop", &dl);
             let grad_image = g.buffer_with("dL/dimage", &before);
-            let cr =
-                GpuCropResize::new(g, (c, h, w), b, size, &image, &out, &grad_out, &grad_image)
-                    .unwrap();
+            let cr = GpuCropResize::new(
+                g,
+                (c, h, w),
+                b,
+                size,
+                (&image, &out),
+                Some((&grad_out, &grad_image)),
+            )
+            .unwrap();
             g.submit(std::slice::from_ref(cr.forward()));
             g.submit(cr.backward());
             let got_crop = g.read_f32(&out, c * size * size).unwrap();
@@ -335,13 +343,19 @@ mod tests {
         let b = |x0, y0, x1, y1| CropBox { x0, y0, x1, y1 };
         for bad in [b(3, 0, 3, 4), b(0, 5, 4, 2), b(0, 0, 9, 4), b(0, 0, 4, 9)] {
             assert!(
-                GpuCropResize::new(g, (3, 8, 8), bad, 4, &buf, &buf, &buf, &buf).is_err(),
+                GpuCropResize::new(g, (3, 8, 8), bad, 4, (&buf, &buf), Some((&buf, &buf))).is_err(),
                 "{bad:?}"
             );
         }
         let small = g.buffer("small", 16);
-        assert!(
-            GpuCropResize::new(g, (3, 8, 8), b(0, 0, 4, 4), 4, &small, &buf, &buf, &buf).is_err()
-        );
+        assert!(GpuCropResize::new(
+            g,
+            (3, 8, 8),
+            b(0, 0, 4, 4),
+            4,
+            (&small, &buf),
+            Some((&buf, &buf))
+        )
+        .is_err());
     }
 }

@@ -112,10 +112,11 @@ impl GpuImageLosses {
         let img_scale = 0.5 / n as f32;
         let box_scale = 0.5 / ns as f32;
         let dims = (3, h, w);
-        let crop_c = GpuCropResize::new(gpu, dims, b, box_size, coarse, &cc, &dcc, d_coarse)?;
-        let crop_f = GpuCropResize::new(gpu, dims, b, box_size, fine, &fc, &dfc, d_fine)?;
-        // The target's crop: only its forward runs (the target has no gradient).
-        let crop_g = GpuCropResize::new(gpu, dims, b, box_size, gt, &gc, &dcc, d_coarse)?;
+        let crop = |images, grad| GpuCropResize::new(gpu, dims, b, box_size, images, grad);
+        let crop_c = crop((coarse, &cc), Some((&dcc, d_coarse)))?;
+        let crop_f = crop((fine, &fc), Some((&dfc, d_fine)))?;
+        // The target has no gradient.
+        let crop_g = crop((gt, &gc), None)?;
         let at = At::new;
         let mut steps = vec![
             crop_c.forward().clone(),

@@ -48,17 +48,7 @@ pub fn render_step(
     }
     let image_bytes = 4 * (c * h * w) as u64;
     // Forward: the splatting (until its pairs fit), the renderer on the splatted image.
-    splat.set_camera(gpu, cam)?;
-    loop {
-        if !splat_grad.fits(splat) {
-            *splat_grad = GpuSplatGrad::new(gpu, splat)?;
-        }
-        splat_grad.submit_forward(gpu, splat);
-        let total = gpu.read_u32(splat.sizes(), 1)?[0] as usize;
-        if !splat.grow(gpu, total)? {
-            break;
-        }
-    }
+    splat_grad.forward(gpu, splat, cam)?;
     let mut enc = gpu
         .device
         .create_command_encoder(&wgpu::CommandEncoderDescriptor {
@@ -112,7 +102,7 @@ mod tests {
     use super::*;
     use crate::grad::renderer_tests::seeded_renderer;
     use crate::splat::SplatInputs;
-    use crate::testutil::gpu;
+    use crate::testutil::{assert_close_rel, gpu};
     use crate::Tuning;
     use candle_core::{Device, Tensor, Var};
     use gagavatar_net::style_unet::Noise;
@@ -127,26 +117,7 @@ mod tests {
     const STEP_RTOL: f64 = 1e-4;
 
     fn check(what: &str, want: &[f32], got: &[f32]) {
-        assert_eq!(want.len(), got.len(), "{what}: lengths");
-        let scale = want
-            .iter()
-            .fold(0f64, |m, v| m.max(v.abs() as f64))
-            .max(1e-12);
-        let (mut worst, mut at) = (0f64, 0);
-        for (i, (a, b)) in want.iter().zip(got).enumerate() {
-            let d = (*a as f64 - *b as f64).abs();
-            if d > worst || d.is_nan() {
-                worst = d;
-                at = i;
-            }
-        }
-        eprintln!("{what}: max abs difference {worst:e} of the largest value {scale:e}");
-        assert!(
-            worst <= STEP_RTOL * scale,
-            "{what}: index {at}: expected {}, got {} (difference {worst:e})",
-            want[at],
-            got[at]
-        );
+        assert_close_rel(what, want, got, STEP_RTOL);
     }
 
     /// The tiny preset's renderer and an avatar-like scene at its 64x64 and 32 channels: the
@@ -169,15 +140,7 @@ mod tests {
         let (unet, vars, host) = seeded_renderer(&cfg, 77);
 
         // GPU.
-        let inputs = SplatInputs {
-            means: &scene.means,
-            features: &scene.features,
-            channels: scene.channels,
-            opacities: &scene.opacities,
-            scales: &scene.scales,
-            rotations: &scene.rotations,
-            background: &bg,
-        };
+        let inputs = SplatInputs::from_scene(&scene, &bg);
         let mut sp = GpuSplat::new(g, &Tuning::default(), &inputs, None, 0, s, s).unwrap();
         let mut sg = GpuSplatGrad::new(g, &sp).unwrap();
         let weights = |key: &str| {

@@ -16,7 +16,7 @@ use super::optim::GpuAdam;
 use super::renderer::GpuRendererGrad;
 use crate::conv::At;
 use crate::error::GpuError;
-use crate::testutil::{assert_close, gpu};
+use crate::testutil::{assert_close_rel as rel_check, gpu};
 use crate::tuning::Tuning;
 use gagavatar_net::style_unet::StyleUNet;
 use gagavatar_train::adam::{Adam, AdamConfig};
@@ -31,14 +31,6 @@ const GRAD_REL_TOL: f64 = 1e-4;
 
 fn flat(t: &Tensor) -> Vec<f32> {
     t.flatten_all().unwrap().to_vec1().unwrap()
-}
-
-fn rel_check(what: &str, want: &[f32], got: &[f32], rel: f64) {
-    let scale = want
-        .iter()
-        .fold(0f64, |m, v| m.max(v.abs() as f64))
-        .max(1e-12);
-    assert_close(what, want, got, rel * scale);
 }
 
 /// How a test draws a weight: `(centre, half width)` of a uniform distribution, from its key,

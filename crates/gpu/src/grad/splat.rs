@@ -333,6 +333,22 @@ impl GpuSplatGrad {
         })
     }
 
+    /// The training forward from `cam`, waited for: the pair buffers grown, and this backward
+    /// rebuilt for them, until the frame fits.
+    pub fn forward(&mut self, gpu: &Gpu, splat: &mut GpuSplat, cam: &Camera) -> Result<()> {
+        splat.set_camera(gpu, cam)?;
+        loop {
+            if !self.fits(splat) {
+                *self = Self::new(gpu, splat)?;
+            }
+            self.submit_forward(gpu, splat);
+            let total = gpu.read_u32(splat.sizes(), 1)?[0] as usize;
+            if !splat.grow(gpu, total)? {
+                return Ok(());
+            }
+        }
+    }
+
     /// One image from `cam`: the training forward (the pair buffers grown, and this backward
     /// rebuilt for them, until the frame fits), then the backward of `grad` = dL/dimage.
     /// Returns the splatted image `[C, H, W]` and the gradients.
@@ -343,17 +359,7 @@ impl GpuSplatGrad {
         cam: &Camera,
         grad: &[f32],
     ) -> Result<(Vec<f32>, SplatGrads)> {
-        splat.set_camera(gpu, cam)?;
-        loop {
-            if !self.fits(splat) {
-                *self = Self::new(gpu, splat)?;
-            }
-            self.submit_forward(gpu, splat);
-            let total = gpu.read_u32(splat.sizes(), 1)?[0] as usize;
-            if !splat.grow(gpu, total)? {
-                break;
-            }
-        }
+        self.forward(gpu, splat, cam)?;
         self.set_grad_output(gpu, grad)?;
         self.submit_backward(gpu);
         let image = gpu.read_f32(&splat.image, self.channels * self.width * self.height)?;

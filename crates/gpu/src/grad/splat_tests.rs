@@ -13,7 +13,7 @@ use gagavatar_splat::{Camera, GaussianScene};
 
 use super::splat::{GpuSplatGrad, SplatGrads};
 use crate::splat::{GpuSplat, SplatInputs};
-use crate::testutil::gpu;
+use crate::testutil::{assert_close_rel as check, gpu};
 use crate::{Gpu, Tuning};
 
 /// Each gradient array's worst difference, relative to its largest magnitude: the sums run in
@@ -64,43 +64,8 @@ fn random_scene(seed: u64, channels: usize, n: usize) -> GaussianScene {
 }
 
 fn gpu_splat(g: &Gpu, scene: &GaussianScene, bg: &[f32], cam: &Camera, t: &Tuning) -> GpuSplat {
-    let inputs = SplatInputs {
-        means: &scene.means,
-        features: &scene.features,
-        channels: scene.channels,
-        opacities: &scene.opacities,
-        scales: &scene.scales,
-        rotations: &scene.rotations,
-        background: bg,
-    };
+    let inputs = SplatInputs::from_scene(scene, bg);
     GpuSplat::new(g, t, &inputs, None, 0, cam.width, cam.height).unwrap()
-}
-
-/// The worst difference of `got` from `want` relative to `want`'s largest magnitude, with the
-/// index, both values and the bound in the failure message.
-fn check(what: &str, want: &[f32], got: &[f32], rtol: f64) {
-    assert_eq!(want.len(), got.len(), "{what}: lengths");
-    let scale = want.iter().fold(0f64, |m, v| m.max(v.abs() as f64));
-    let (mut worst, mut at) = (0f64, 0);
-    for (i, (a, b)) in want.iter().zip(got).enumerate() {
-        let d = (*a as f64 - *b as f64).abs();
-        // A NaN difference is the worst.
-        if d > worst || d.is_nan() {
-            worst = d;
-            at = i;
-        }
-    }
-    eprintln!(
-        "{what}: max abs difference {worst:e} of the largest value {scale:e} (bound {:e})",
-        rtol * scale
-    );
-    assert!(
-        worst <= rtol * scale,
-        "{what}: index {at}: expected {}, got {} (difference {worst:e} > {:e})",
-        want[at],
-        got[at],
-        rtol * scale
-    );
 }
 
 /// The GPU's training forward and backward of `grad` against the CPU's backward run on the

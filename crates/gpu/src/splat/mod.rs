@@ -36,6 +36,21 @@ pub struct SplatInputs<'a> {
     pub background: &'a [f32],
 }
 
+impl<'a> SplatInputs<'a> {
+    /// A scene's Gaussians (all of them, no head vertices) with `background`.
+    pub fn from_scene(scene: &'a gagavatar_splat::GaussianScene, background: &'a [f32]) -> Self {
+        Self {
+            means: &scene.means,
+            features: &scene.features,
+            channels: scene.channels,
+            opacities: &scene.opacities,
+            scales: &scene.scales,
+            rotations: &scene.rotations,
+            background,
+        }
+    }
+}
+
 /// Gaussian attributes in GPU buffers, in [`SplatInputs`]' layouts (`n` Gaussians, `channels`
 /// features; `means` holds the positions after the head vertices).
 pub struct SplatBuffers {
@@ -449,15 +464,7 @@ pub(crate) mod tests {
         cam: &Camera,
         tuning: &Tuning,
     ) -> GpuFrame {
-        let inputs = SplatInputs {
-            means: &scene.means,
-            features: &scene.features,
-            channels: scene.channels,
-            opacities: &scene.opacities,
-            scales: &scene.scales,
-            rotations: &scene.rotations,
-            background: bg,
-        };
+        let inputs = SplatInputs::from_scene(scene, bg);
         let mut s = GpuSplat::new(g, tuning, &inputs, None, 0, cam.width, cam.height).unwrap();
         let image = s.render(g, cam).unwrap();
         let n = scene.len();
