@@ -8,13 +8,16 @@ use anyhow::{bail, Context, Result};
 use candle_core::{DType, Device};
 use clap::Args;
 use gagavatar_data::Dataset;
-use gagavatar_train::collective::{launched_by_mpi, Collective, Single};
+use gagavatar_gpu::grad::render_half::GpuRenderHalf;
+use gagavatar_train::collective::{launched_by_mpi, local_rank, Collective, Single};
 use gagavatar_train::eval::{evaluate_with, write_grid};
 use gagavatar_train::pairs::{eval_pairs, SampleSource};
 use gagavatar_train::perceptual::{seeded_weights, PerceptualLoss, PERCEP_PREFIX};
 use gagavatar_train::trainer::load_flame;
-use gagavatar_train::{EvalReport, Monitor, Run, StepReport, TrainConfig};
+use gagavatar_train::{EvalReport, Monitor, Run, StepReport, TrainConfig, TrainState};
 use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::device_args::DeviceArgs;
 
 #[derive(Debug, Args)]
 #[command(
@@ -33,6 +36,11 @@ weights, optimizer, step, config) and weights.safetensors (the model alone, rele
 `gagavatar reenact --ckpt RUN/weights.safetensors` loads it; `gagavatar convert \
 RUN/weights.safetensors GAGAvatar.pt` makes the release's torch checkpoint). Ctrl-C writes a \
 checkpoint and stops.\n\n\
+Device: --device gpu runs each sample's splatting, neural renderer and image terms (forward and \
+backward) on the GPU, f32; the reconstruction networks, the perceptual and lifting terms and Adam \
+stay on the CPU, so checkpoints are the same files and a run moves between devices at any \
+resume. --device auto takes a real GPU when there is one. Under mpirun each rank takes the GPU \
+of its local rank.\n\n\
 Speed: unless the environment sets it, CANDLE_BARRIER_POOL_SPIN_LIMIT=0 is used (candle's \
 element-wise pool otherwise spin-waits between the many small ops of a step: 4x slower tiny \
 steps on a busy 2-core machine). CANDLE_NUM_THREADS=1 made tiny steps another ~20% faster there."
@@ -83,6 +91,8 @@ pub struct TrainArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
+    #[command(flatten)]
+    pub device: DeviceArgs,
 }
 
 #[derive(Debug, Args)]
@@ -90,7 +100,7 @@ pub struct TrainArgs {
     after_help = "Times full training steps (forward of both phases, every loss term, \
 backward, NaN check, Adam) on a synthetic batch with seeded weights; data loading is not \
 included (it runs on other threads).\n\nExample:\n  gagavatar train-bench --preset tiny --batch 1 \
---runs 10 --threads 2"
+--runs 10 --threads 2\n  gagavatar train-bench --preset release --batch 8 --runs 3 --device gpu"
 )]
 pub struct TrainBenchArgs {
     /// Training preset (tiny or release).
@@ -112,6 +122,8 @@ pub struct TrainBenchArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
+    #[command(flatten)]
+    pub device: DeviceArgs,
 }
 
 /// Thread settings; must run before candle or rayon start their pools.
@@ -259,6 +271,28 @@ fn on_job_teardown(lead: bool, dir: &std::path::Path) {
 #[cfg(not(unix))]
 fn on_job_teardown(_lead: bool, _dir: &std::path::Path) {}
 
+/// Moves the rendering half of `state`'s steps onto `gpu`.
+fn set_render_half(
+    state: &mut TrainState,
+    gpu: Arc<gagavatar_gpu::Gpu>,
+    device: &DeviceArgs,
+) -> gagavatar_train::RunResult<()> {
+    let describe = gpu.describe();
+    let err = |e: gagavatar_gpu::GpuError| gagavatar_train::RunError::Render {
+        device: describe.clone(),
+        err: Box::new(e),
+    };
+    let tuning = device
+        .tuning(&gpu)
+        .map_err(|e| gagavatar_train::RunError::Render {
+            device: describe.clone(),
+            err: e.into(),
+        })?;
+    let weights = state.renderer_weights()?;
+    let rh = GpuRenderHalf::new(gpu, &tuning, &state.cfg.model, &weights).map_err(err)?;
+    state.set_render_half(Box::new(rh))
+}
+
 pub fn run_train(a: TrainArgs) -> Result<()> {
     set_threads(a.threads);
     let dev = Device::Cpu;
@@ -306,6 +340,13 @@ pub fn run_train(a: TrainArgs) -> Result<()> {
     };
     if ranks.size() > 1 {
         on_job_teardown(lead, run.dir());
+    }
+    // Each rank on its machine takes its own GPU.
+    if let Some(gpu) = a
+        .device
+        .open_for_training_nth("training's splatting and renderer", local_rank())?
+    {
+        set_render_half(&mut run.state, gpu, &a.device)?;
     }
     if !lead {
         run.train(&monitor)?;
@@ -484,15 +525,26 @@ pub fn run_bench(a: TrainBenchArgs) -> Result<()> {
     } else {
         None
     };
-    let t = gagavatar_train::bench::time_steps(&cfg, percep, a.batch, a.runs, &dev)?;
+    let gpu = a
+        .device
+        .open_for_training("the training step's splatting and renderer")?;
+    let on = gpu.as_ref().map(|g| g.describe());
+    let t = gagavatar_train::bench::time_steps_with(&cfg, percep, a.batch, a.runs, &dev, |st| {
+        if let Some(g) = gpu.clone() {
+            set_render_half(st, g, &a.device)?;
+        }
+        Ok(())
+    })?;
     let ms: Vec<String> = t
         .steps_s
         .iter()
         .map(|s| format!("{:.0}", s * 1e3))
         .collect();
     println!(
-        "train step, model `{}` batch {}: median {:.1} ms ({:.2} steps/s); steps [{}] ms; \
+        "train step{}, model `{}` batch {}: median {:.1} ms ({:.2} steps/s); steps [{}] ms; \
          {} trained values{}, perceptual term {}; model built in {:.2} s; {}",
+        on.map(|d| format!(" (splatting and renderer on {d})"))
+            .unwrap_or_default(),
         cfg.model.name,
         a.batch,
         t.median_s() * 1e3,

@@ -52,32 +52,38 @@ impl DeviceArgs {
     /// [`DeviceArgs::open`], the line saying `what` runs there ("rendering", "reconstructing
     /// and rendering", ...).
     pub fn open_for(&self, what: &str) -> Result<Option<Arc<Gpu>>> {
-        self.open_as(what, false)
+        self.open_as(what, false, 0)
     }
 
     /// [`DeviceArgs::open_for`] for the training kernels, which run f32 convolutions whatever
     /// the adapter offers (the f16 tensor-core path is forward only): f16 asked for is an
     /// error, and the line says f32.
     pub fn open_for_training(&self, what: &str) -> Result<Option<Arc<Gpu>>> {
+        self.open_for_training_nth(what, 0)
+    }
+
+    /// [`DeviceArgs::open_for_training`] on the `index`-th of several equal GPUs (a
+    /// data-parallel rank's on its machine; see [`Gpu::nth`]).
+    pub fn open_for_training_nth(&self, what: &str, index: usize) -> Result<Option<Arc<Gpu>>> {
         if self.gpu_precision == GpuPrecisionArg::F16 {
             anyhow::bail!(
                 "--gpu-precision f16 is for rendering: {what} runs f32 convolutions (use f32 or auto)"
             );
         }
-        self.open_as(what, true)
+        self.open_as(what, true, index)
     }
 
-    fn open_as(&self, what: &str, f32_only: bool) -> Result<Option<Arc<Gpu>>> {
+    fn open_as(&self, what: &str, f32_only: bool, index: usize) -> Result<Option<Arc<Gpu>>> {
         let gpu = match self.device {
             DeviceChoice::Cpu => return Ok(None),
-            DeviceChoice::Auto => match Gpu::new(AdapterPolicy::RealOnly) {
+            DeviceChoice::Auto => match Gpu::nth(AdapterPolicy::RealOnly, index) {
                 Ok(g) => g,
                 Err(e) => {
                     eprintln!("{e}; {what} on the CPU");
                     return Ok(None);
                 }
             },
-            DeviceChoice::Gpu => Gpu::new(AdapterPolicy::AllowCpu)?,
+            DeviceChoice::Gpu => Gpu::nth(AdapterPolicy::AllowCpu, index)?,
         };
         // Checked here so a bad combination fails before any work.
         let mma = !f32_only

@@ -225,6 +225,93 @@ fn two_ranks_follow_one_process_and_resume_with_another_count() {
     assert!(!bad.join("checkpoint.safetensors").exists());
 }
 
+/// `train --device gpu` (the rendering half on Mesa's CPU Vulkan here) against the CPU: the
+/// first step's loss terms and gradient norm (the GPU's sums in another order; measured
+/// within 1e-6), then later steps'. Adam with beta1 = 0 moves every parameter by about the
+/// learning rate on its first step whatever its gradient's size, so rounding differences grow
+/// step by step (two CPU runs on 1 and 2 threads differ by 1e-3 in the gradient norm at step
+/// 5, the GPU run by 4e-3).
+const GPU_FIRST_RTOL: f64 = 1e-4;
+const GPU_LATER_RTOL: f64 = 2e-2;
+
+fn compare_steps(what: &str, a: &Path, b: &Path, steps: usize) {
+    let (ma, mb) = (metrics(a), metrics(b));
+    assert!(
+        ma.len() >= steps && mb.len() >= steps,
+        "{what}: too few steps logged"
+    );
+    for (i, (x, y)) in ma.iter().zip(&mb).take(steps).enumerate() {
+        assert_eq!(x["step"], y["step"], "{what}: steps differ");
+        let tol = if i == 0 {
+            GPU_FIRST_RTOL
+        } else {
+            GPU_LATER_RTOL
+        };
+        for key in ["loss", "grad_norm", "img", "box", "percep", "point"] {
+            let (Some(u), Some(v)) = (x[key].as_f64(), y[key].as_f64()) else {
+                assert_eq!(x[key], y[key], "{what}: step {}: {key}", x["step"]);
+                continue;
+            };
+            let rel = (u - v).abs() / u.abs().max(1e-12);
+            eprintln!(
+                "{what}: step {}: {key} {u} vs {v} (relative {rel:e})",
+                x["step"]
+            );
+            assert!(
+                rel <= tol,
+                "{what}: step {}: {key} {u} vs {v} (relative {rel:e} > {tol:e})",
+                x["step"]
+            );
+        }
+    }
+}
+
+/// Two ranks, each with the rendering half on its GPU, follow one CPU process at batch 2; the
+/// run then resumes on the CPU (a GPU checkpoint is an ordinary one).
+#[test]
+fn two_gpu_ranks_follow_one_cpu_process_and_resume_on_the_cpu() {
+    if mpirun().is_none() {
+        return;
+    }
+    let (dir, data) = fresh_dataset("train_mpi_gpu");
+    let s = |p: &Path| p.display().to_string();
+    let args = |out: &Path, device: &str| -> Vec<String> {
+        [
+            "--preset",
+            "tiny",
+            "--data",
+            &s(&data),
+            "--steps",
+            "2",
+            "--seed",
+            "4",
+            "--batch",
+            "2",
+            "--val-every",
+            "0",
+            "--device",
+            device,
+            "--out",
+            &s(out),
+        ]
+        .map(String::from)
+        .to_vec()
+    };
+    let cpu = dir.join("cpu");
+    train(1, &strs(&args(&cpu, "cpu")));
+    let gpu = dir.join("gpu");
+    let err = train(2, &strs(&args(&gpu, "gpu")));
+    assert!(
+        err.contains("training's splatting and renderer on"),
+        "{err}"
+    );
+    compare_steps("2 GPU ranks vs 1 CPU process", &cpu, &gpu, 2);
+    for d in [&cpu, &gpu] {
+        train(1, &["--resume", &s(d), "--steps", "3", "--device", "cpu"]);
+    }
+    compare_steps("then resumed on the CPU", &cpu, &gpu, 3);
+}
+
 /// The process of rank `rank` that the launcher `launcher` started (`/proc`: its parent and
 /// OpenMPI's rank variable).
 fn rank_pid(launcher: u32, rank: usize) -> Option<u32> {

@@ -134,6 +134,13 @@ impl Gpu {
     /// before CPU-emulated, Vulkan before the other backends on ties; [`ADAPTER_ENV`] narrows the
     /// choice by name.
     pub fn new(policy: AdapterPolicy) -> Result<Self> {
+        Self::nth(policy, 0)
+    }
+
+    /// [`Gpu::new`]'s choice among several equal adapters: the `index`-th (modulo their
+    /// number) of those that tie with the best, so that the ranks of a data-parallel job on a
+    /// machine with eight GPUs take one each (`index` = the rank on its machine).
+    pub fn nth(policy: AdapterPolicy, index: usize) -> Result<Self> {
         let inst = instance();
         let adapters = pollster::block_on(inst.enumerate_adapters(wgpu::Backends::all()));
         let seen: Vec<String> = adapters.iter().map(|a| describe(&a.get_info())).collect();
@@ -151,11 +158,16 @@ impl Gpu {
                         .contains(wgpu::DownlevelFlags::COMPUTE_SHADERS)
             })
             .collect();
-        candidates.sort_by_key(|a| {
+        let class = |a: &wgpu::Adapter| {
             let info = a.get_info();
             (rank(&info), info.backend != wgpu::Backend::Vulkan)
-        });
-        let Some(adapter) = candidates.into_iter().next() else {
+        };
+        // Stable: equal adapters keep the order the driver lists them in.
+        candidates.sort_by_key(class);
+        let best = candidates.first().map(class);
+        candidates.retain(|a| Some(class(a)) == best);
+        let n = candidates.len().max(1);
+        let Some(adapter) = candidates.into_iter().nth(index % n) else {
             return Err(GpuError::NoAdapter {
                 policy,
                 wanted,

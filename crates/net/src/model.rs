@@ -397,6 +397,47 @@ pub fn splat_coarse(
     vertices: &Tensor,
     transform: &Tensor,
 ) -> Result<Tensor> {
+    let g = coarse_gaussians(cfg, avatar, vertices, transform)?;
+    let background = Tensor::zeros(cfg.color_dim, g.features.dtype(), g.features.device())?;
+    let out = splat(
+        &Gaussians {
+            means: &g.means,
+            features: &g.features,
+            opacities: &g.opacities,
+            scales: &g.scales,
+            rotations: &g.rotations,
+        },
+        &background,
+        &g.cameras,
+    )?;
+    Ok(out.image)
+}
+
+/// What the coarse splatting of frames renders: per frame the head vertices followed by both
+/// lifted point sets, with the avatar's attributes (batch-expanded) and the frames' cameras.
+#[derive(Debug, Clone)]
+pub struct CoarseGaussians {
+    /// `[B, V + 2 S^2, 3]`
+    pub means: Tensor,
+    /// `[B, N, color_dim]`
+    pub features: Tensor,
+    /// `[B, N, 1]`
+    pub opacities: Tensor,
+    /// `[B, N, 3]`
+    pub scales: Tensor,
+    /// `[B, N, 4]`
+    pub rotations: Tensor,
+    pub cameras: Vec<Camera>,
+}
+
+/// The Gaussians and cameras [`splat_coarse`] renders, for a trainer that splats them itself
+/// (on a GPU) and brings their gradients back.
+pub fn coarse_gaussians(
+    cfg: &ModelConfig,
+    avatar: &Avatar,
+    vertices: &Tensor,
+    transform: &Tensor,
+) -> Result<CoarseGaussians> {
     let v = cfg.n_vertices;
     let b = match vertices.dims() {
         [b, n, 3] if *b > 0 && *n == v => *b,
@@ -433,19 +474,14 @@ pub fn splat_coarse(
     let scales = expand(&avatar.scales)?.contiguous()?;
     let rotations = expand(&avatar.rotations)?.contiguous()?;
     let cams = cameras(transform, cfg.image_size)?;
-    let background = Tensor::zeros(cfg.color_dim, dtype, features.device())?;
-    let out = splat(
-        &Gaussians {
-            means: &means,
-            features: &features,
-            opacities: &opacities,
-            scales: &scales,
-            rotations: &rotations,
-        },
-        &background,
-        &cams,
-    )?;
-    Ok(out.image)
+    Ok(CoarseGaussians {
+        means,
+        features,
+        opacities,
+        scales,
+        rotations,
+        cameras: cams,
+    })
 }
 
 /// The second half: the neural renderer (coarse `[B, C, H, W]` -> fine RGB); with the

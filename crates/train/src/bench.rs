@@ -82,9 +82,23 @@ pub fn time_steps(
     runs: usize,
     device: &Device,
 ) -> RunResult<StepTiming> {
+    time_steps_with(cfg, percep, batch, runs, device, |_| Ok(()))
+}
+
+/// [`time_steps`] with `setup` applied to the state before the first step (e.g. a
+/// [`crate::RenderHalf`] on a GPU; its setup counts in `build_s`).
+pub fn time_steps_with(
+    cfg: &TrainConfig,
+    percep: Option<PerceptualLoss>,
+    batch: usize,
+    runs: usize,
+    device: &Device,
+    setup: impl FnOnce(&mut TrainState) -> RunResult<()>,
+) -> RunResult<StepTiming> {
     let t0 = Instant::now();
     let has_percep = percep.is_some();
     let mut state = TrainState::new(cfg.clone(), None, percep, device)?;
+    setup(&mut state)?;
     let trained_values = state.vars()?.iter().map(|(_, v)| v.elem_count()).sum();
     let build_s = t0.elapsed().as_secs_f64();
     let b = synthetic_batch(cfg, batch, device)?;

@@ -64,6 +64,20 @@ pub fn launched_by_mpi() -> bool {
         .any(|v| std::env::var_os(v).is_some())
 }
 
+/// This process's rank among the job's ranks on its machine, as MPI launchers (OpenMPI,
+/// MPICH/Hydra, Slurm) tell it; 0 outside such a job. Each rank takes its own GPU with it.
+pub fn local_rank() -> usize {
+    [
+        "OMPI_COMM_WORLD_LOCAL_RANK",
+        "MPI_LOCALRANKID",
+        "PMI_LOCAL_RANK",
+        "SLURM_LOCALID",
+    ]
+    .iter()
+    .find_map(|v| std::env::var(v).ok()?.trim().parse().ok())
+    .unwrap_or(0)
+}
+
 #[cfg(feature = "mpi")]
 pub use with_mpi::Mpi;
 

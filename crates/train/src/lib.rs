@@ -15,6 +15,8 @@
 //!
 //! - [`config`]: the TOML training configuration (`configs/tiny.toml`, `configs/release.toml`);
 //! - [`pairs`]: training and evaluation pairs, sample loading, the prefetching loader;
+//! - [`render_half`]: the interface of a device that runs the step's rendering half
+//!   (`train --device gpu`);
 //! - [`trainer`]: the step ([`TrainState`]), the NaN guard, the run folder ([`Run`]): logging,
 //!   validation, checkpoints and resume;
 //! - [`ckpt`]: the checkpoint file and the run folder's file names;
@@ -36,6 +38,7 @@ pub mod metrics;
 pub mod nearest;
 pub mod pairs;
 pub mod perceptual;
+pub mod render_half;
 pub mod run_error;
 pub mod trainer;
 
@@ -53,5 +56,6 @@ pub use metrics::{
 pub use nearest::{lifting_loss, KdTree, LIFTING_WEIGHT};
 pub use pairs::{eval_pairs, Pair, PairSampler};
 pub use perceptual::{PerceptualFeatures, PerceptualLoss, PERCEP_PREFIX};
+pub use render_half::{BackendError, RenderForward, RenderGrads, RenderHalf, RenderSample};
 pub use run_error::{RunError, RunResult};
 pub use trainer::{Monitor, NoMonitor, Run, RunSummary, StepReport, TrainState};

@@ -122,6 +122,11 @@ impl TrainLosses {
         self.percep.is_some()
     }
 
+    /// The perceptual network, when the term is on.
+    pub fn percep(&self) -> Option<&PerceptualLoss> {
+        self.percep.as_ref()
+    }
+
     /// Evaluates every enabled term. Errors on mismatched shapes, a NaN or degenerate bbox,
     /// empty or non-finite point sets.
     pub fn compute(&self, x: &LossInputs) -> Result<LossTerms> {

@@ -52,6 +52,13 @@ pub enum RunError {
         size: usize,
         reason: String,
     },
+    /// The device running the rendering half of the step (`--device gpu`) failed.
+    #[error("the rendering half on {device}")]
+    Render {
+        device: String,
+        #[source]
+        err: crate::render_half::BackendError,
+    },
     /// Ctrl-C or another stop request.
     #[error("stopped at step {step}: {reason}")]
     Stopped { step: u64, reason: String },

@@ -4,7 +4,10 @@
 //!
 //! - Step: both phases in one graph ([`GagAvatar::train_forward`]), the release's loss
 //!   ([`TrainLosses`]), backward, then Adam. The renderer's noise is
-//!   [`Noise::Seeded`] from `(seed, step)`.
+//!   [`Noise::Seeded`] from `(seed, step)`. With a [`RenderHalf`] (`--device gpu`) the
+//!   splatting, renderer and image terms of each sample run there, forward and backward, and
+//!   the Gaussians' gradients come back into one backward of the reconstruction (the same
+//!   gradients: see [`TrainState::set_render_half`]).
 //! - NaN guard: a step whose loss or any gradient is NaN or infinite changes nothing (no
 //!   update, the optimiser and its schedule stay where they were); it is reported, logged with
 //!   `"skipped"` in `metrics.jsonl` and counted.
@@ -27,13 +30,14 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
+use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarMap;
 use gagavatar_data::Dataset;
 use gagavatar_flame::{synthesize, FlameAsset, FlameModel, LoadOptions};
 use gagavatar_net::checkpoint::{read_weights, write_tensors_with_metadata, FLAME_METADATA_KEY};
-use gagavatar_net::model::GagAvatar;
-use gagavatar_net::style_unet::Noise;
+use gagavatar_net::model::{coarse_gaussians, GagAvatar};
+use gagavatar_net::style_unet::{noise_resolution, seeded_noise_from, Noise};
 use gagavatar_net::train::{export_weights, trainable_model};
 use gagavatar_net::ModelConfig;
 use serde_json::json;
@@ -46,9 +50,12 @@ use crate::ckpt::{
 use crate::collective::{Collective, Single};
 use crate::config::TrainConfig;
 use crate::eval::{evaluate, write_grid, EvalReport};
+use crate::head_box::{crop_resize, head_boxes};
 use crate::losses::{LossInputs, TrainLosses};
+use crate::nearest::lifting_loss;
 use crate::pairs::{eval_pairs, mix, BatchTensors, Loader, Pair, PairSampler, SampleSource};
 use crate::perceptual::{PerceptualLoss, PERCEP_PREFIX};
+use crate::render_half::{RenderHalf, RenderSample};
 use crate::run_error::{ckpt_err, config_err, io_err, RunError, RunResult};
 
 /// Salt of the renderer-noise stream.
@@ -121,6 +128,18 @@ pub struct TrainState {
     poisoned: BTreeSet<u64>,
     /// The ranks this state trains with (one: [`Single`]).
     collective: Arc<dyn Collective>,
+    /// Where the rendering half of each step runs when not in the candle graph (a GPU).
+    render_half: Option<Box<dyn RenderHalf>>,
+}
+
+/// The loss terms' values of a step (this rank's batch).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepTerms {
+    pub loss: f64,
+    pub img: f64,
+    pub box_l1: f64,
+    pub percep: Option<f64>,
+    pub point: Option<f64>,
 }
 
 impl std::fmt::Debug for TrainState {
@@ -163,6 +182,7 @@ impl TrainState {
             skipped_steps: 0,
             poisoned: BTreeSet::new(),
             collective: Arc::new(Single),
+            render_half: None,
         })
     }
 
@@ -170,6 +190,235 @@ impl TrainState {
     /// gradients and loss terms are averaged over the ranks before the (identical) Adam step.
     pub fn set_collective(&mut self, collective: Arc<dyn Collective>) {
         self.collective = collective;
+    }
+
+    /// Runs the rendering half of every step on `rh` (a GPU): see
+    /// [`crate::render_half`]. The model's ablations without a neural renderer keep the CPU.
+    pub fn set_render_half(&mut self, rh: Box<dyn RenderHalf>) -> RunResult<()> {
+        if self.cfg.model.no_neural_renderer {
+            return Err(config_err(
+                None,
+                "the no_neural_renderer ablation trains on the CPU only (--device cpu)",
+            ));
+        }
+        self.render_half = Some(rh);
+        Ok(())
+    }
+
+    /// The renderer's trained weights, by key relative to `upsampler.`, flattened f32 (what a
+    /// [`RenderHalf`] is built with and receives each step).
+    pub fn renderer_weights(&self) -> RunResult<HashMap<String, Vec<f32>>> {
+        let mut out = HashMap::new();
+        for (k, v) in self.vars()? {
+            if let Some(key) = k.strip_prefix("upsampler.") {
+                let t = v.as_tensor().flatten_all()?.to_dtype(DType::F32)?;
+                out.insert(key.to_string(), t.to_vec1::<f32>()?);
+            }
+        }
+        Ok(out)
+    }
+
+    /// The device of the rendering half, when it is not the CPU.
+    pub fn render_device(&self) -> Option<String> {
+        self.render_half.as_ref().map(|r| r.describe())
+    }
+
+    /// The step's forward and backward with the rendering half on `rh`: reconstruction in the
+    /// candle graph, each sample's splatting, renderer and image terms (forward and backward)
+    /// on `rh`, the perceptual distance of the crops `rh` returns and the lifting term here;
+    /// then one backward of the reconstruction from the Gaussians' gradients. Every term is a
+    /// mean over the batch, so each sample's gradients count `1 / B`.
+    fn split_forward_backward(
+        &self,
+        rh: &mut dyn RenderHalf,
+        batch: &BatchTensors,
+        seed: u64,
+        first: usize,
+    ) -> RunResult<(StepTerms, Option<GradStore>)> {
+        let name = rh.describe();
+        let device = |err| RunError::Render {
+            device: name.clone(),
+            err,
+        };
+        let cfg = &self.cfg.model;
+        let avatar = self
+            .model
+            .reconstruct(&batch.source_image, &batch.source_transform)?;
+        let g = coarse_gaussians(
+            cfg,
+            &avatar,
+            &batch.target_vertices,
+            &batch.target_transform,
+        )?;
+        let vars: HashMap<String, Var> = self.vars()?.into_iter().collect();
+        rh.set_renderer_weights(&self.renderer_weights()?)
+            .map_err(device)?;
+
+        let rows = |t: &Tensor| -> RunResult<Vec<Vec<f32>>> {
+            Ok(t.flatten_from(1)?.to_dtype(DType::F32)?.to_vec2::<f32>()?)
+        };
+        let attrs = [&g.means, &g.features, &g.opacities, &g.scales, &g.rotations];
+        let host: Vec<Vec<Vec<f32>>> = attrs.iter().map(|t| rows(t)).collect::<RunResult<_>>()?;
+        if host.iter().flatten().flatten().any(|v| !v.is_finite()) {
+            // As on the CPU, a blown-up reconstruction makes the loss NaN and the step is
+            // skipped (the device would refuse such Gaussians).
+            let nan = StepTerms {
+                loss: f64::NAN,
+                img: f64::NAN,
+                box_l1: f64::NAN,
+                percep: self.losses.percep().map(|_| f64::NAN),
+                point: self.losses.cfg.lifting.then_some(f64::NAN),
+            };
+            return Ok((nan, None));
+        }
+        let targets = rows(&batch.target_image)?;
+        let (b, _, h, w) = batch.target_image.dims4()?;
+        let boxes = head_boxes(&batch.bbox, h, w)?;
+        let box_size = self.losses.cfg.box_size;
+        let percep = self.losses.percep();
+        let gt_crops = match percep {
+            Some(_) => Some(crop_resize(
+                &batch.target_image.to_dtype(DType::F32)?,
+                &boxes,
+                box_size,
+            )?),
+            None => None,
+        };
+        let like = Tensor::zeros(1, DType::F32, &Device::Cpu)?;
+        let n_noise = 2 * cfg.renderer_levels() + 1;
+        let inv_b = 1.0 / b as f32;
+        let mut acc: Vec<Vec<f32>> = host
+            .iter()
+            .map(|a| vec![0f32; a.len() * a[0].len()])
+            .collect();
+        let mut renderer: HashMap<String, Vec<f32>> = HashMap::new();
+        let (mut img, mut box_l1, mut percep_sum) = (0.0, 0.0, 0.0);
+        for i in 0..b {
+            let noise = (0..n_noise)
+                .map(|j| {
+                    let r = noise_resolution(j);
+                    let t = seeded_noise_from(seed, j, first + i, 1, r, &like)?;
+                    Ok(t.flatten_all()?.to_vec1::<f32>()?)
+                })
+                .collect::<RunResult<Vec<_>>>()?;
+            let sample = RenderSample {
+                means: &host[0][i],
+                features: &host[1][i],
+                channels: cfg.color_dim,
+                opacities: &host[2][i],
+                scales: &host[3][i],
+                rotations: &host[4][i],
+                camera: &g.cameras[i],
+                target: &targets[i],
+                head_box: boxes[i],
+                noise: &noise,
+            };
+            let fwd = rh
+                .forward(&sample, box_size, percep.is_some())
+                .map_err(device)?;
+            img += fwd.img;
+            box_l1 += fwd.box_l1;
+            let crop_grads = match (percep, &gt_crops, fwd.crops) {
+                (Some(p), Some(gt), Some([cc, fc])) => {
+                    let shape = (1, 3, box_size, box_size);
+                    let vc = Var::from_vec(cc, shape, &Device::Cpu)?;
+                    let vf = Var::from_vec(fc, shape, &Device::Cpu)?;
+                    let target = p.features(&gt.narrow(0, i, 1)?)?;
+                    let pred = p.features(&Tensor::cat(&[vc.as_tensor(), vf.as_tensor()], 0)?)?;
+                    let d = (PerceptualLoss::distance(&pred, &target)?
+                        * self.losses.cfg.percep_weight)?;
+                    percep_sum += d.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+                    let gs = d.backward()?;
+                    let flat = |v: &Var| -> RunResult<Vec<f32>> {
+                        Ok(match gs.get(v.as_tensor()) {
+                            Some(t) => t.flatten_all()?.to_vec1::<f32>()?,
+                            None => vec![0f32; v.as_tensor().elem_count()],
+                        })
+                    };
+                    Some([flat(&vc)?, flat(&vf)?])
+                }
+                _ => None,
+            };
+            let gr = rh
+                .backward(
+                    crop_grads
+                        .as_ref()
+                        .map(|[c, f]| [c.as_slice(), f.as_slice()]),
+                )
+                .map_err(device)?;
+            for (k, src) in [gr.means, gr.features, gr.opacities, gr.scales, gr.rotations]
+                .iter()
+                .enumerate()
+            {
+                let per = host[k][i].len();
+                if src.len() != per {
+                    return Err(device(
+                        format!("{} gradient values for {per} of attribute {k}", src.len()).into(),
+                    ));
+                }
+                for (a, v) in acc[k][i * per..(i + 1) * per].iter_mut().zip(src) {
+                    *a = v * inv_b;
+                }
+            }
+            for (key, v) in gr.renderer {
+                let e = renderer.entry(key).or_insert_with(|| vec![0f32; v.len()]);
+                for (a, x) in e.iter_mut().zip(&v) {
+                    *a += x * inv_b;
+                }
+            }
+        }
+
+        // The reconstruction's backward: d(sum_k <a_k, g_k>) / dθ carries the Gaussians'
+        // gradients g_k into the networks, the lifting term adds its own.
+        let mut surrogate = Tensor::zeros((), DType::F32, &Device::Cpu)?;
+        for (t, gk) in attrs.iter().zip(acc) {
+            let gk = Tensor::from_vec(gk, t.dims(), t.device())?.to_dtype(t.dtype())?;
+            surrogate = (surrogate + (*t * gk)?.sum_all()?.to_dtype(DType::F32)?)?;
+        }
+        let point = if self.losses.cfg.lifting {
+            let p = lifting_loss(&avatar.lifted_xyz, &batch.target_vertices)?;
+            let v = p.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+            surrogate = (surrogate + p.to_dtype(DType::F32)?)?;
+            Some(v)
+        } else {
+            None
+        };
+        let mut grads = surrogate.backward()?;
+        for (key, v) in renderer {
+            let name = format!("upsampler.{key}");
+            let var = vars.get(&name).ok_or_else(|| {
+                device(format!("a gradient of {name}, which the model does not train").into())
+            })?;
+            let t = var.as_tensor();
+            if v.len() != t.elem_count() {
+                return Err(device(
+                    format!(
+                        "{} gradient values for {name} of {}",
+                        v.len(),
+                        t.elem_count()
+                    )
+                    .into(),
+                ));
+            }
+            grads.insert(
+                t,
+                Tensor::from_vec(v, t.dims(), t.device())?.to_dtype(t.dtype())?,
+            );
+        }
+        let b = b as f64;
+        let (img, box_l1) = (img / b, box_l1 / b);
+        let percep = percep.map(|_| percep_sum / b);
+        let loss = img + box_l1 + percep.unwrap_or(0.0) + point.unwrap_or(0.0);
+        Ok((
+            StepTerms {
+                loss,
+                img,
+                box_l1,
+                percep,
+                point,
+            },
+            Some(grads),
+        ))
     }
 
     /// Replaces each gradient by its mean over the ranks (every rank holds the same
@@ -253,6 +502,64 @@ impl TrainState {
         mix(mix(self.cfg.train.seed, SALT_NOISE), step)
     }
 
+    /// The loss terms of this state's next step on `batch` and, when the loss is finite, every
+    /// trained parameter's gradient (this rank's, before any averaging over ranks); changes
+    /// nothing. [`Self::train_step`] is this, the ranks' averaging, the NaN guard and Adam.
+    pub fn forward_backward(
+        &mut self,
+        batch: &BatchTensors,
+    ) -> RunResult<(StepTerms, Option<GradStore>)> {
+        // This rank's samples sit at rank x share in the step's whole batch.
+        let first = self.collective.rank() * batch.source_image.dim(0)?;
+        let seed = self.noise_seed(self.step);
+        let ranks = self.collective.size();
+        let poisoned = self.poisoned.contains(&self.step);
+        let (terms, grads) = match self.render_half.take() {
+            Some(mut rh) => {
+                let r = self.split_forward_backward(rh.as_mut(), batch, seed, first);
+                self.render_half = Some(rh);
+                let (terms, grads) = r?;
+                (terms, grads.filter(|_| !poisoned))
+            }
+            None => {
+                let noise = if ranks > 1 {
+                    Noise::SeededFrom { seed, first }
+                } else {
+                    Noise::Seeded(seed)
+                };
+                let out = self.model.train_forward(
+                    &batch.source_image,
+                    &batch.source_transform,
+                    &batch.target_vertices,
+                    &batch.target_transform,
+                    noise,
+                )?;
+                let t = self.losses.compute(&LossInputs {
+                    coarse: &out.coarse,
+                    fine: &out.fine,
+                    gt: &batch.target_image,
+                    bbox: &batch.bbox,
+                    lifted: &out.avatar.lifted_xyz,
+                    targets: &batch.target_vertices,
+                })?;
+                let grads = if t.total.value.is_finite() && !poisoned {
+                    Some(t.total.tensor.backward()?)
+                } else {
+                    None
+                };
+                let values = StepTerms {
+                    loss: t.total.value,
+                    img: t.img.value,
+                    box_l1: t.box_l1.value,
+                    percep: t.percep.as_ref().map(|t| t.value),
+                    point: t.point.as_ref().map(|t| t.value),
+                };
+                (values, grads)
+            }
+        };
+        Ok((terms, grads))
+    }
+
     /// One optimisation step on `batch` (which must be the batch of step `self.step`).
     pub fn train_step(&mut self, batch: &BatchTensors) -> RunResult<StepReport> {
         let t0 = Instant::now();
@@ -260,38 +567,18 @@ impl TrainState {
         let adam_cfg = self.adam.config();
         let lr = adam_cfg.lr * adam_cfg.factor(self.adam.schedule_step());
         let ranks = self.collective.size();
-        let noise = if ranks > 1 {
-            // This rank's samples sit at rank x share in the step's whole batch.
-            Noise::SeededFrom {
-                seed: self.noise_seed(step),
-                first: self.collective.rank() * batch.source_image.dim(0)?,
-            }
-        } else {
-            Noise::Seeded(self.noise_seed(step))
-        };
-        let out = self.model.train_forward(
-            &batch.source_image,
-            &batch.source_transform,
-            &batch.target_vertices,
-            &batch.target_transform,
-            noise,
-        )?;
-        let terms = self.losses.compute(&LossInputs {
-            coarse: &out.coarse,
-            fine: &out.fine,
-            gt: &batch.target_image,
-            bbox: &batch.bbox,
-            lifted: &out.avatar.lifted_xyz,
-            targets: &batch.target_vertices,
-        })?;
-        let (mut total, mut loss) = (terms.total.tensor.clone(), terms.total.value);
-        if self.poisoned.contains(&step) {
-            total = (total * f64::NAN)?;
+        let (terms, grads) = self.forward_backward(batch)?;
+        let poisoned = self.poisoned.contains(&step);
+        let StepTerms {
+            mut loss,
+            mut img,
+            mut box_l1,
+            mut percep,
+            mut point,
+        } = terms;
+        if poisoned {
             loss = f64::NAN;
         }
-        let (mut img, mut box_l1) = (terms.img.value, terms.box_l1.value);
-        let mut percep = terms.percep.as_ref().map(|t| t.value);
-        let mut point = terms.point.as_ref().map(|t| t.value);
         if ranks > 1 {
             // The step's loss is the mean over the whole batch: the ranks' means averaged (a
             // NaN on any rank makes every rank skip the step).
@@ -321,10 +608,7 @@ impl TrainState {
             no_grad: Vec::new(),
             seconds: 0.0,
         };
-        if !loss.is_finite() {
-            report.skipped = Some(format!("the loss is {loss}"));
-        } else {
-            let mut grads = total.backward()?;
+        if let (true, Some(mut grads)) = (loss.is_finite(), grads) {
             let mut vars = self.vars()?;
             vars.sort_by(|a, b| a.0.cmp(&b.0));
             if ranks > 1 {
@@ -363,6 +647,8 @@ impl TrainState {
                     if bad.len() > 3 { ", ..." } else { "" }
                 ));
             }
+        } else {
+            report.skipped = Some(format!("the loss is {loss}"));
         }
         report.no_grad.sort();
         if report.skipped.is_some() {
@@ -838,6 +1124,12 @@ impl Run {
     }
 
     /// This process's rank and the rank count (0 and 1 without data parallelism).
+    /// Runs the rendering half of every coming step on `rh` (see
+    /// [`TrainState::set_render_half`]); checkpoints, logs and validation are unchanged.
+    pub fn set_render_half(&mut self, rh: Box<dyn RenderHalf>) -> RunResult<()> {
+        self.state.set_render_half(rh)
+    }
+
     pub fn ranks(&self) -> (usize, usize) {
         (self.collective.rank(), self.collective.size())
     }

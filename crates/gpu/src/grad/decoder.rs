@@ -19,7 +19,7 @@ use super::conv::{conv_backward, part_floats, row_sums, ConvGrad};
 use super::layers::{act_backward, resize_backward, rms_norm_backward, Kept};
 use super::modconv::{modconv_backward, ModConvGrad, ModConvScratch};
 pub use super::params::Param;
-use super::params::{Packed, Store};
+use super::params::{Packed, ParamSource, Store};
 use crate::conv::{Act, At, Conv, Ops};
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
@@ -62,6 +62,9 @@ pub struct GpuDecoderGrad {
     /// Parameter and gradient buffers ([`Param`] indexes them).
     pub buffers: Vec<wgpu::Buffer>,
     pub params: Vec<Param>,
+    /// The noise maps the style convolutions add, `noise{i}` at `noise_at[i]`.
+    noise: wgpu::Buffer,
+    noise_at: Vec<usize>,
     forward: Vec<Step>,
     backward: Vec<Step>,
 }
@@ -675,9 +678,41 @@ impl GpuDecoderGrad {
             grad_conditions,
             buffers: st.buffers,
             params: st.params,
+            noise,
+            noise_at,
             forward: fwd,
             backward: bwd,
         })
+    }
+
+    /// Replaces the noise maps (the checkpoint's at construction) for the next forward: map
+    /// `i` is `[noise_resolution(i)^2]`, as `gagavatar_net::style_unet::seeded_noise` draws
+    /// one sample's.
+    pub fn set_noise(&self, gpu: &Gpu, maps: &[Vec<f32>]) -> Result<()> {
+        if maps.len() != self.noise_at.len() {
+            return Err(GpuError::Input {
+                name: "decoder noise".into(),
+                reason: format!("{} maps, expected {}", maps.len(), self.noise_at.len()),
+            });
+        }
+        for (i, (m, &at)) in maps.iter().zip(&self.noise_at).enumerate() {
+            let r = noise_resolution(i);
+            if m.len() != r * r {
+                return Err(GpuError::Input {
+                    name: format!("decoder noise map {i}"),
+                    reason: format!("{} values, expected {r}x{r}", m.len()),
+                });
+            }
+            gpu.queue
+                .write_buffer(&self.noise, 4 * at as u64, bytemuck::cast_slice(m));
+        }
+        Ok(())
+    }
+
+    /// Overwrites every trained parameter with `value(key)` (keys relative to `upsampler.`,
+    /// values flattened in the checkpoint's layout).
+    pub fn set_weights(&self, gpu: &Gpu, value: &ParamSource) -> Result<()> {
+        super::params::write_params(gpu, &self.buffers, &self.params, value)
     }
 
     pub fn forward_steps(&self) -> &[Step] {

@@ -29,7 +29,17 @@ pub struct GpuImageLosses {
     /// `[4]`: the four L1 means, each already halved (img coarse, img fine, box coarse, box
     /// fine).
     values: wgpu::Buffer,
+    /// The forward, the values and the gradients, then (from `backward_at`) the crops'
+    /// backward.
     steps: Vec<Step>,
+    backward_at: usize,
+    /// `[3, box, box]`: the coarse RGB's and the fine image's crops.
+    pub coarse_crop: wgpu::Buffer,
+    pub fine_crop: wgpu::Buffer,
+    /// Their gradients (the box terms'), which the crops' backward reads.
+    pub grad_coarse_crop: wgpu::Buffer,
+    pub grad_fine_crop: wgpu::Buffer,
+    crop_floats: usize,
 }
 
 fn l1_sum(
@@ -132,14 +142,66 @@ impl GpuImageLosses {
             l1_grad(gpu, ns, at(&cc), at(&gc), box_scale, at(&dcc))?,
             l1_grad(gpu, ns, at(&fc), at(&gc), box_scale, at(&dfc))?,
         ];
+        let backward_at = steps.len();
         steps.extend(crop_c.backward().iter().cloned());
         steps.extend(crop_f.backward().iter().cloned());
-        Ok(Self { values, steps })
+        Ok(Self {
+            values,
+            steps,
+            backward_at,
+            coarse_crop: cc,
+            fine_crop: fc,
+            grad_coarse_crop: dcc,
+            grad_fine_crop: dfc,
+            crop_floats: ns,
+        })
     }
 
     /// The forward, the values and the gradients, in order.
     pub fn steps(&self) -> &[Step] {
         &self.steps
+    }
+
+    /// The crops, the values and the gradients of the crops (no image gradient yet): a term
+    /// computed elsewhere from the crops (the perceptual distance) adds its gradients with
+    /// [`Self::add_crop_grads`] before [`Self::backward_steps`].
+    pub fn forward_steps(&self) -> &[Step] {
+        &self.steps[..self.backward_at]
+    }
+
+    /// The crops' backward into the images' gradients (after [`Self::forward_steps`]).
+    pub fn backward_steps(&self) -> &[Step] {
+        &self.steps[self.backward_at..]
+    }
+
+    /// The crops `[3, box, box]` (coarse RGB, fine) after the forward.
+    pub fn read_crops(&self, gpu: &Gpu) -> Result<[Vec<f32>; 2]> {
+        Ok([
+            gpu.read_f32(&self.coarse_crop, self.crop_floats)?,
+            gpu.read_f32(&self.fine_crop, self.crop_floats)?,
+        ])
+    }
+
+    /// Adds another term's gradients of the two crops to the box terms' (between the forward
+    /// and the backward).
+    pub fn add_crop_grads(&self, gpu: &Gpu, coarse: &[f32], fine: &[f32]) -> Result<()> {
+        for (name, buf, extra) in [
+            ("dL/dcoarse crop", &self.grad_coarse_crop, coarse),
+            ("dL/dfine crop", &self.grad_fine_crop, fine),
+        ] {
+            if extra.len() != self.crop_floats {
+                return Err(input_err(
+                    name,
+                    format!("{} values, expected {}", extra.len(), self.crop_floats),
+                ));
+            }
+            let mut g = gpu.read_f32(buf, self.crop_floats)?;
+            for (a, b) in g.iter_mut().zip(extra) {
+                *a += b;
+            }
+            gpu.queue.write_buffer(buf, 0, bytemuck::cast_slice(&g));
+        }
+        Ok(())
     }
 
     /// The terms after the steps ran.

@@ -4,6 +4,12 @@
 //! renderer's training forward and backward ([`renderer::GpuRendererGrad`]: U-Net, condition
 //! branches, StyleGAN2 decoder, sigmoid), checked against candle's autograd.
 //!
+//! `train --device gpu` runs [`render_half::GpuRenderHalf`]: each sample's splatting, renderer
+//! and image terms, forward and backward, behind `gagavatar_train`'s `RenderHalf`; the
+//! reconstruction networks' backward, the perceptual and lifting terms and Adam stay on the CPU
+//! for now (the split step's gradients are checked against the CPU step's in
+//! `render_half_tests`).
+//!
 //! They are recorded [`Step`](crate::kernel::Step)s like the forward's, and they reuse the
 //! forward's kernels where the mathematics allows: a stride-1 convolution's input gradient is
 //! the same convolution of the output gradient with the weight's channels swapped and its
@@ -21,6 +27,7 @@ pub mod lifting;
 pub mod modconv;
 pub mod optim;
 pub mod params;
+pub mod render_half;
 pub mod render_step;
 pub mod renderer;
 pub mod splat;
@@ -33,3 +40,6 @@ pub(crate) mod renderer_tests;
 
 #[cfg(test)]
 mod splat_tests;
+
+#[cfg(test)]
+mod render_half_tests;

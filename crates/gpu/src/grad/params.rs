@@ -1,7 +1,10 @@
 //! Where a trained module keeps its parameters and their gradients on the GPU.
 
 use crate::device::Gpu;
-use crate::error::Result;
+use crate::error::{GpuError, Result};
+
+/// A parameter's new values by key (`None`: the caller has no such parameter).
+pub type ParamSource<'a> = dyn Fn(&str) -> Option<&'a [f32]> + 'a;
 
 /// Where a parameter's values and gradient live: `len` floats at `offset` of buffer
 /// `value` / `grad` (indices into the module's buffers).
@@ -109,4 +112,31 @@ pub(crate) fn read_grads(
             Ok((p.key.clone(), all[p.offset..].to_vec()))
         })
         .collect()
+}
+
+/// Writes every parameter's values from `value` into its buffer, at its offset; a key
+/// `value` lacks or of another length is an error (nothing keeps a stale value silently).
+pub(crate) fn write_params(
+    gpu: &Gpu,
+    buffers: &[wgpu::Buffer],
+    params: &[Param],
+    value: &ParamSource,
+) -> Result<()> {
+    for p in params {
+        let v = value(&p.key).ok_or_else(|| GpuError::Weights(format!("no {}", p.key)))?;
+        if v.len() != p.len {
+            return Err(GpuError::Weights(format!(
+                "{}: {} values, expected {}",
+                p.key,
+                v.len(),
+                p.len
+            )));
+        }
+        gpu.queue.write_buffer(
+            &buffers[p.value],
+            4 * p.offset as u64,
+            bytemuck::cast_slice(v),
+        );
+    }
+    Ok(())
 }

@@ -13,7 +13,7 @@ use gagavatar_net::ModelConfig;
 use super::conv::{conv_backward, part_floats, ConvGrad};
 use super::decoder::GpuDecoderGrad;
 use super::layers::{act_backward, resize_backward, Kept};
-use super::params::{read_grads, Packed, Param, Store};
+use super::params::{read_grads, write_params, Packed, Param, ParamSource, Store};
 use crate::conv::{Act, At, Conv, Ops};
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
@@ -681,6 +681,20 @@ impl GpuRendererGrad {
     /// Needs the forward's values of the same input (run the forward first).
     pub fn backward_steps(&self) -> &[Step] {
         &self.backward
+    }
+
+    /// Overwrites every trained parameter (U-Net and decoder) with `value(key)` (keys relative
+    /// to `upsampler.`, values flattened in the checkpoint's layout): a trainer whose master
+    /// weights live elsewhere uploads them before each step.
+    pub fn set_weights(&self, gpu: &Gpu, value: &ParamSource) -> Result<()> {
+        write_params(gpu, &self.buffers, &self.params, value)?;
+        self.decoder.set_weights(gpu, value)
+    }
+
+    /// Replaces the decoder's noise maps for the next forward (see
+    /// [`GpuDecoderGrad::set_noise`]).
+    pub fn set_noise(&self, gpu: &Gpu, maps: &[Vec<f32>]) -> Result<()> {
+        self.decoder.set_noise(gpu, maps)
     }
 
     /// Every parameter's gradient (U-Net and decoder), read back, by key relative to

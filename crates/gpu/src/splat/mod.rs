@@ -354,6 +354,37 @@ impl GpuSplat {
         gpu.read_f32(&self.image, self.channels * self.width * self.height)
     }
 
+    /// Replaces the Gaussians (as many, with as many channels, and no head vertices read from
+    /// another buffer) for the next frames: a trainer's next sample reuses the buffers.
+    pub fn set_gaussians(&self, gpu: &Gpu, inputs: &SplatInputs) -> Result<()> {
+        let (n, c) = (self.n, self.channels);
+        if self.n_vertices != 0 || inputs.channels != c || inputs.opacities.len() != n {
+            return Err(input_err(
+                "gaussians",
+                format!(
+                    "{} Gaussians of {} channels for a splat of {n} of {c} ({} head vertices)",
+                    inputs.opacities.len(),
+                    inputs.channels,
+                    self.n_vertices
+                ),
+            ));
+        }
+        let all = [
+            ("means", inputs.means, 3 * n, &self.rest),
+            ("features", inputs.features, n * c, &self.features),
+            ("opacities", inputs.opacities, n, &self.opacities),
+            ("scales", inputs.scales, 3 * n, &self.scales),
+            ("rotations", inputs.rotations, 4 * n, &self.rotations),
+        ];
+        for (name, v, want, _) in &all {
+            check_len(name, v, *want)?;
+        }
+        for (_, v, _, buf) in all {
+            gpu.queue.write_buffer(buf, 0, bytemuck::cast_slice(v));
+        }
+        Ok(())
+    }
+
     /// The buffers holding the Gaussians' constants (for reuse by other stages).
     pub fn features(&self) -> &wgpu::Buffer {
         &self.features

@@ -1,0 +1,249 @@
+//! `train --device gpu`'s rendering half ([`gagavatar_train::RenderHalf`]) on wgpu: per
+//! sample the Gaussians uploaded into one reused splat, the training forward of the splatting
+//! and of the renderer with the sample's noise, the image and head-box terms, and on the
+//! backward the caller's crop gradients added, then the chain of [`super::render_step`]:
+//! renderer backward, the two gradients of the splatted image summed, splatting backward.
+
+use std::collections::HashMap;
+
+use gagavatar_net::style_unet::noise_resolution;
+use gagavatar_net::ModelConfig;
+use gagavatar_train::render_half::{
+    BackendError, RenderForward, RenderGrads, RenderHalf, RenderSample,
+};
+
+use crate::device::Gpu;
+use crate::error::{input_err, Result};
+use crate::grad::crop::CropBox;
+use crate::grad::image_loss::GpuImageLosses;
+use crate::grad::renderer::GpuRendererGrad;
+use crate::grad::splat::GpuSplatGrad;
+use crate::kernel::{linear_grid, Bind, Params, Step};
+use crate::splat::{GpuSplat, SplatInputs};
+use crate::tuning::Tuning;
+
+const ADD: &str = include_str!("../shaders/add.wgsl");
+
+/// What a forward leaves for its backward.
+struct Pending {
+    losses: GpuImageLosses,
+    d_loss: wgpu::Buffer,
+}
+
+/// The rendering half on one GPU (see the module's text).
+pub struct GpuRenderHalf {
+    gpu: std::sync::Arc<Gpu>,
+    tuning: Tuning,
+    size: usize,
+    channels: usize,
+    renderer: GpuRendererGrad,
+    /// The splat and its backward, rebuilt when the Gaussian count changes.
+    splat: Option<(GpuSplat, GpuSplatGrad)>,
+    pending: Option<Pending>,
+    background: Vec<f32>,
+}
+
+impl GpuRenderHalf {
+    /// Records the renderer's training forward and backward for `cfg` with `weights` (keys
+    /// relative to `upsampler.`; every later step uploads its own with
+    /// [`RenderHalf::set_renderer_weights`]).
+    pub fn new(
+        gpu: std::sync::Arc<Gpu>,
+        tuning: &Tuning,
+        cfg: &ModelConfig,
+        weights: &HashMap<String, Vec<f32>>,
+    ) -> Result<Self> {
+        // The noise maps are buffers, not trained weights: each sample brings its own.
+        let mut noise = HashMap::new();
+        for i in 0..2 * cfg.renderer_levels() + 1 {
+            let r = noise_resolution(i);
+            noise.insert(
+                format!("stylegan_decoder.noises.noise{i}"),
+                vec![0f32; r * r],
+            );
+        }
+        let get = |key: &str| {
+            weights
+                .get(key)
+                .or_else(|| noise.get(key))
+                .cloned()
+                .ok_or_else(|| crate::GpuError::Weights(format!("no upsampler.{key}")))
+        };
+        let renderer = GpuRendererGrad::new(&gpu, tuning, cfg, &get)?;
+        Ok(Self {
+            tuning: tuning.clone(),
+            size: cfg.image_size,
+            channels: cfg.color_dim,
+            renderer,
+            splat: None,
+            pending: None,
+            background: vec![0.0; cfg.color_dim],
+            gpu,
+        })
+    }
+
+    fn forward_sample(
+        &mut self,
+        s: &RenderSample,
+        box_size: usize,
+        crops: bool,
+    ) -> Result<RenderForward> {
+        let gpu = &*self.gpu;
+        let (c, size) = (self.channels, self.size);
+        if s.channels != c || s.target.len() != 3 * size * size {
+            return Err(input_err(
+                "render sample",
+                format!(
+                    "{} channels and {} target values for a {c}-channel {size}x{size} renderer",
+                    s.channels,
+                    s.target.len()
+                ),
+            ));
+        }
+        let inputs = SplatInputs {
+            means: s.means,
+            features: s.features,
+            channels: c,
+            opacities: s.opacities,
+            scales: s.scales,
+            rotations: s.rotations,
+            background: &self.background,
+        };
+        let reuse = matches!(&self.splat, Some((sp, _)) if sp.n == s.opacities.len());
+        if reuse {
+            if let Some((sp, _)) = &self.splat {
+                sp.set_gaussians(gpu, &inputs)?;
+            }
+        } else {
+            self.pending = None;
+            let sp = GpuSplat::new(gpu, &self.tuning, &inputs, None, 0, size, size)?;
+            let sg = GpuSplatGrad::new(gpu, &sp)?;
+            self.splat = Some((sp, sg));
+        }
+        let Some((sp, sg)) = self.splat.as_mut() else {
+            return Err(input_err("render sample", "no splat"));
+        };
+        sg.forward(gpu, sp, s.camera)?;
+        self.renderer.set_noise(gpu, s.noise)?;
+        let image_bytes = 4 * (c * size * size) as u64;
+        let mut enc = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("splatted image to the renderer"),
+            });
+        enc.copy_buffer_to_buffer(&sp.image, 0, &self.renderer.input, 0, image_bytes);
+        gpu.queue.submit([enc.finish()]);
+        gpu.submit(self.renderer.forward_steps());
+
+        let target = gpu.buffer_with("target", s.target);
+        let d_loss = gpu.buffer("dL/dcoarse (loss terms)", image_bytes);
+        let hb = s.head_box;
+        let losses = GpuImageLosses::new(
+            gpu,
+            (c, size, size),
+            CropBox {
+                x0: hb.x0,
+                y0: hb.y0,
+                x1: hb.x1,
+                y1: hb.y1,
+            },
+            box_size,
+            &sp.image,
+            &self.renderer.output,
+            &target,
+            &d_loss,
+            &self.renderer.grad_output,
+        )?;
+        gpu.submit(losses.forward_steps());
+        let terms = losses.read(gpu)?;
+        let crops = if crops {
+            Some(losses.read_crops(gpu)?)
+        } else {
+            None
+        };
+        self.pending = Some(Pending { losses, d_loss });
+        Ok(RenderForward {
+            img: terms.img as f64,
+            box_l1: terms.box_l1 as f64,
+            crops,
+        })
+    }
+
+    fn backward_sample(&mut self, crop_grads: Option<[&[f32]; 2]>) -> Result<RenderGrads> {
+        let gpu = &*self.gpu;
+        let (Some(p), Some((sp, sg))) = (self.pending.take(), self.splat.as_ref()) else {
+            return Err(input_err(
+                "render backward",
+                "no forward to go back through",
+            ));
+        };
+        if let Some([c, f]) = crop_grads {
+            p.losses.add_crop_grads(gpu, c, f)?;
+        }
+        gpu.submit(p.losses.backward_steps());
+        gpu.submit(self.renderer.backward_steps());
+        let k = gpu.kernel(
+            "add",
+            ADD,
+            &[],
+            &[Bind::Uniform, Bind::Read, Bind::Read, Bind::ReadWrite],
+        )?;
+        let n = sp.channels * sp.width * sp.height;
+        let u = gpu.uniform("add", &Params::new().u(n as u32));
+        let add = Step::new(
+            k.clone(),
+            gpu.bind(
+                &k,
+                &[&u, &p.d_loss, &self.renderer.grad_input, &sg.grad_image],
+            )?,
+            linear_grid(n, 256),
+        );
+        gpu.submit(std::slice::from_ref(&add));
+        sg.submit_backward(gpu);
+        let g = sg.read(gpu)?;
+        let rows = |first: usize, width: usize| -> Vec<f32> {
+            g.geom
+                .chunks_exact(11)
+                .flat_map(|r| r[first..first + width].iter().copied())
+                .collect()
+        };
+        Ok(RenderGrads {
+            means: rows(0, 3),
+            opacities: rows(3, 1),
+            scales: rows(4, 3),
+            rotations: rows(7, 4),
+            features: g.features,
+            renderer: self.renderer.read_grads(gpu)?,
+        })
+    }
+}
+
+impl RenderHalf for GpuRenderHalf {
+    fn describe(&self) -> String {
+        self.gpu.describe()
+    }
+
+    fn set_renderer_weights(
+        &mut self,
+        weights: &HashMap<String, Vec<f32>>,
+    ) -> std::result::Result<(), BackendError> {
+        let value = |key: &str| weights.get(key).map(|v| v.as_slice());
+        Ok(self.renderer.set_weights(&self.gpu, &value)?)
+    }
+
+    fn forward(
+        &mut self,
+        sample: &RenderSample,
+        box_size: usize,
+        crops: bool,
+    ) -> std::result::Result<RenderForward, BackendError> {
+        Ok(self.forward_sample(sample, box_size, crops)?)
+    }
+
+    fn backward(
+        &mut self,
+        crop_grads: Option<[&[f32]; 2]>,
+    ) -> std::result::Result<RenderGrads, BackendError> {
+        Ok(self.backward_sample(crop_grads)?)
+    }
+}

@@ -1,0 +1,123 @@
+//! `train --device gpu`'s split step against the CPU step: the same state, batch and noise,
+//! every loss term and every trained parameter's gradient.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use candle_core::{DType, Device};
+use gagavatar_train::bench::synthetic_batch;
+use gagavatar_train::perceptual::{seeded_weights, PerceptualLoss, PERCEP_PREFIX};
+use gagavatar_train::{TrainConfig, TrainState};
+
+use super::render_half::GpuRenderHalf;
+use crate::device::{AdapterPolicy, Gpu};
+use crate::testutil::{assert_close_rel, gpu};
+use crate::Tuning;
+
+/// Every gradient relative to its array's largest: the render step's bound
+/// (`render_step`'s `STEP_RTOL`, the pieces chained), carried through the reconstruction's
+/// backward, which is the same candle graph on both sides.
+const SPLIT_RTOL: f64 = 1e-4;
+
+/// The loss terms: sums of the same f32 values in another order.
+const TERM_RTOL: f64 = 1e-5;
+
+fn states(percep: bool) -> Option<(TrainState, TrainState)> {
+    gpu()?;
+    let cfg = TrainConfig::preset("tiny").unwrap();
+    let p = || {
+        percep.then(|| {
+            let w: HashMap<String, _> = seeded_weights(5)
+                .unwrap()
+                .into_iter()
+                .map(|(k, v)| (format!("{PERCEP_PREFIX}{k}"), v))
+                .collect();
+            PerceptualLoss::from_tensors(&w, DType::F32, &Device::Cpu)
+                .unwrap()
+                .unwrap()
+        })
+    };
+    let cpu = TrainState::new(cfg.clone(), None, p(), &Device::Cpu).unwrap();
+    let mut split = TrainState::new(cfg.clone(), None, p(), &Device::Cpu).unwrap();
+    // Its own device: the render half holds it for the run.
+    let g = Arc::new(Gpu::new(AdapterPolicy::AllowCpu).unwrap());
+    let rh = GpuRenderHalf::new(
+        g,
+        &Tuning::default(),
+        &cfg.model,
+        &split.renderer_weights().unwrap(),
+    )
+    .unwrap();
+    split.set_render_half(Box::new(rh)).unwrap();
+    Some((cpu, split))
+}
+
+fn check_terms(step: usize, want: f64, got: f64, what: &str) {
+    let d = (want - got).abs();
+    assert!(
+        d <= TERM_RTOL * want.abs(),
+        "step {step}: {what}: expected {want}, got {got} (difference {d:e})"
+    );
+}
+
+/// Batch 2 with every term on (the perceptual distance on the crops the GPU returns, the
+/// lifting term on the CPU): the terms and every trained parameter's gradient.
+#[test]
+fn split_step_gradients_match_the_cpu_step() {
+    let Some((mut cpu, mut split)) = states(true) else {
+        return;
+    };
+    let batch = synthetic_batch(&cpu.cfg, 2, &Device::Cpu).unwrap();
+    let (want, wg) = cpu.forward_backward(&batch).unwrap();
+    let (got, gg) = split.forward_backward(&batch).unwrap();
+    eprintln!("CPU {want:?}\nGPU {got:?}");
+    check_terms(0, want.img, got.img, "img");
+    check_terms(0, want.box_l1, got.box_l1, "box");
+    check_terms(0, want.percep.unwrap(), got.percep.unwrap(), "percep");
+    check_terms(0, want.point.unwrap(), got.point.unwrap(), "point");
+    check_terms(0, want.loss, got.loss, "loss");
+    let (wg, gg) = (wg.unwrap(), gg.unwrap());
+    let cpu_vars: HashMap<String, _> = cpu.vars().unwrap().into_iter().collect();
+    let mut compared = 0;
+    for (name, v) in split.vars().unwrap() {
+        let flat =
+            |t: &candle_core::Tensor| -> Vec<f32> { t.flatten_all().unwrap().to_vec1().unwrap() };
+        match (wg.get(cpu_vars[&name].as_tensor()), gg.get(v.as_tensor())) {
+            (Some(w), Some(g)) => {
+                assert_close_rel(&format!("d {name}"), &flat(w), &flat(g), SPLIT_RTOL);
+                compared += 1;
+            }
+            (None, None) => {}
+            (w, g) => panic!(
+                "{name}: a gradient on one side only (CPU {}, GPU {})",
+                w.is_some(),
+                g.is_some()
+            ),
+        }
+    }
+    assert!(compared > 200, "only {compared} parameters compared");
+}
+
+/// A few optimisation steps (batch 2, the release's Adam): the losses follow the CPU run's.
+/// Adam normalises each gradient, so values whose gradient is rounding noise can move by up to
+/// a learning rate either way; the losses stay close.
+#[test]
+fn split_steps_follow_the_cpu_run() {
+    let Some((mut cpu, mut split)) = states(false) else {
+        return;
+    };
+    let batch = synthetic_batch(&cpu.cfg, 2, &Device::Cpu).unwrap();
+    for step in 0..4 {
+        let want = cpu.train_step(&batch).unwrap();
+        let got = split.train_step(&batch).unwrap();
+        eprintln!("step {step}: CPU {}, GPU {}", want.loss, got.loss);
+        assert!(want.skipped.is_none() && got.skipped.is_none());
+        let d = (want.loss - got.loss).abs();
+        assert!(
+            d <= 1e-3 * want.loss,
+            "step {step}: loss expected {}, got {} (difference {d:e})",
+            want.loss,
+            got.loss
+        );
+    }
+}

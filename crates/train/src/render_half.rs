@@ -1,0 +1,88 @@
+//! The rendering half of a training step on another device (`train --device gpu`): the
+//! coarse splatting of the target's Gaussians, the neural renderer and the image and head-box
+//! terms, forward and backward, for one sample at a time. The trainer keeps the master weights,
+//! the reconstruction networks, the perceptual and lifting terms and Adam; per step it uploads
+//! the renderer's weights, per sample the Gaussians, the camera, the target and the noise, and
+//! takes back the loss terms and the gradients of the Gaussians and of every renderer weight.
+//!
+//! The split is where the cost is at release size (the renderer and the 512x512 splatting), and
+//! it keeps checkpoints, the optimiser and the data-parallel averaging exactly as on the CPU,
+//! so a run may move between devices at any checkpoint.
+
+use std::collections::HashMap;
+
+use gagavatar_splat::Camera;
+
+use crate::head_box::HeadBox;
+
+/// A backend's own error, kept whole (its source chain) for the run's error.
+pub type BackendError = Box<dyn std::error::Error + Send + Sync>;
+
+/// One sample's inputs (host values, row-major, f32).
+#[derive(Debug, Clone, Copy)]
+pub struct RenderSample<'a> {
+    /// `[N, 3]`: the head vertices, then both lifted point sets.
+    pub means: &'a [f32],
+    /// `[N, C]`
+    pub features: &'a [f32],
+    pub channels: usize,
+    /// `[N]`
+    pub opacities: &'a [f32],
+    /// `[N, 3]`
+    pub scales: &'a [f32],
+    /// `[N, 4]`, unnormalised
+    pub rotations: &'a [f32],
+    pub camera: &'a Camera,
+    /// `[3, S, S]` in [0, 1].
+    pub target: &'a [f32],
+    pub head_box: HeadBox,
+    /// The decoder's noise maps, map `i` `[noise_resolution(i)^2]`.
+    pub noise: &'a [Vec<f32>],
+}
+
+/// The forward's image terms (means over the sample, as [`crate::TrainLosses`] defines them)
+/// and, when asked for, the two head-box crops `[3, box, box]` (coarse RGB, fine).
+#[derive(Debug, Clone)]
+pub struct RenderForward {
+    pub img: f64,
+    pub box_l1: f64,
+    pub crops: Option<[Vec<f32>; 2]>,
+}
+
+/// The sample's gradients: of each Gaussian attribute (the layouts of [`RenderSample`]) and of
+/// every renderer weight by key relative to `upsampler.`, flattened in the checkpoint's layout.
+#[derive(Debug, Clone)]
+pub struct RenderGrads {
+    pub means: Vec<f32>,
+    pub features: Vec<f32>,
+    pub opacities: Vec<f32>,
+    pub scales: Vec<f32>,
+    pub rotations: Vec<f32>,
+    pub renderer: Vec<(String, Vec<f32>)>,
+}
+
+/// A device that runs the rendering half (see the module's text).
+pub trait RenderHalf {
+    /// The device, in words, for the run's log.
+    fn describe(&self) -> String;
+
+    /// The renderer's weights for the coming samples, by key relative to `upsampler.`.
+    fn set_renderer_weights(
+        &mut self,
+        weights: &HashMap<String, Vec<f32>>,
+    ) -> Result<(), BackendError>;
+
+    /// Splats and renders `sample`, evaluates the image terms at head-box size `box_size`;
+    /// `crops`: also return the two crops (for a term computed on them by the caller).
+    fn forward(
+        &mut self,
+        sample: &RenderSample,
+        box_size: usize,
+        crops: bool,
+    ) -> Result<RenderForward, BackendError>;
+
+    /// The backward of the last forward, with `crop_grads` (the caller's own term's gradients
+    /// of the two crops) added to the box terms'. The gradients are of the sample's own terms
+    /// (a batch's mean is the caller's to take).
+    fn backward(&mut self, crop_grads: Option<[&[f32]; 2]>) -> Result<RenderGrads, BackendError>;
+}
