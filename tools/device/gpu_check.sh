@@ -3,7 +3,8 @@
 # adapter facts, the GPU parity tests on a real driver (release size included, their measured
 # maxima printed), `bench drive` at release size for both Gaussian regimes, `bench
 # reconstruct` (f16 and f32), `bench renderer-grad` (issue 31: the renderer's training forward
-# and backward), `reenact` end to end (reconstruct on the GPU too), and a sweep of
+# and backward), `bench splat --device gpu`, `train-bench` on the GPU and the CPU (issue 31:
+# `train --device gpu`'s split step), `reenact` end to end (reconstruct on the GPU too), and a sweep of
 # convolution tilings (GAGAVATAR_GPU_TUNE, no rebuild), everything written to $OUT: a
 # summary.txt to read, one JSON per bench run (bench_*.json) and check.json gathering them.
 #
@@ -13,8 +14,8 @@
 set -u
 # FRAMES, SWEEP_FRAMES, REENACT_FRAMES, RECONSTRUCT_RUNS, GRAD_RUNS, PRESET and TESTS (a
 # test-name filter) shrink the run for a dry run on lavapipe; SKIP_TESTS=1 leaves the parity
-# tests out. STEPS (drive reconstruct grad splat reenact tests sweep; SPLAT_PLANE shrinks the
-# splat scene), DRIVE_RUNS (small large f16),
+# tests out. STEPS (drive reconstruct grad splat train reenact tests sweep; SPLAT_PLANE shrinks
+# the splat scene; TRAIN_BATCH, TRAIN_RUNS size train-bench), DRIVE_RUNS (small large f16),
 # RECONSTRUCT_PRECISIONS and REENACT_PRECISIONS (f16 f32) pick what a later call redoes.
 FRAMES=${FRAMES:-300}
 SWEEP_FRAMES=${SWEEP_FRAMES:-40}
@@ -70,7 +71,7 @@ nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm --format=c
 cat "$OUT/nvidia_smi.csv" >> "$OUT/summary.txt"
 
 # STEPS picks sections (a second call after a fix need not redo the rest).
-STEPS=${STEPS:-drive reconstruct grad splat reenact tests sweep}
+STEPS=${STEPS:-drive reconstruct grad splat train reenact tests sweep}
 want() { case " $STEPS " in *" $1 "*) return 0 ;; *) return 1 ;; esac; }
 
 want drive && {
@@ -125,6 +126,17 @@ timeout 120 "$BIN/gagavatar" bench splat --device gpu --regime both --plane "${S
     --runs "${GRAD_RUNS:-10}" > "$OUT/bench_splat.txt" 2>&1
 echo "exit $? (splat)" >> "$OUT/summary.txt"
 grep -E "^splat|^error" "$OUT/bench_splat.txt" >> "$OUT/summary.txt"
+}
+
+want train && {
+log "train-bench (issue 31: train --device gpu's split step against the CPU step), $PRESET seeded weights and perceptual networks, batch ${TRAIN_BATCH:-1}, ${TRAIN_RUNS:-2} steps"
+for device in gpu cpu; do
+    timeout 200 "$BIN/gagavatar" train-bench --preset "$PRESET" --batch "${TRAIN_BATCH:-1}" \
+        --runs "${TRAIN_RUNS:-2}" --seeded-percep --device "$device" \
+        > "$OUT/train_bench_$device.txt" 2>&1
+    echo "exit $? (train-bench --device $device)" >> "$OUT/summary.txt"
+    grep -E "^train step|^error" "$OUT/train_bench_$device.txt" >> "$OUT/summary.txt"
+done
 }
 
 want reenact && {

@@ -36,9 +36,9 @@ weights, optimizer, step, config) and weights.safetensors (the model alone, rele
 `gagavatar reenact --ckpt RUN/weights.safetensors` loads it; `gagavatar convert \
 RUN/weights.safetensors GAGAvatar.pt` makes the release's torch checkpoint). Ctrl-C writes a \
 checkpoint and stops.\n\n\
-Device: --device gpu runs each sample's splatting, neural renderer and image terms (forward and \
-backward) on the GPU, f32; the reconstruction networks, the perceptual and lifting terms and Adam \
-stay on the CPU, so checkpoints are the same files and a run moves between devices at any \
+Device: --device gpu runs each sample's splatting, neural renderer, image, head-box and perceptual \
+terms (forward and backward) on the GPU, f32; the reconstruction networks, the lifting term and \
+Adam stay on the CPU, so checkpoints are the same files and a run moves between devices at any \
 resume. --device auto takes a real GPU when there is one. Under mpirun each rank takes the GPU \
 of its local rank.\n\n\
 Speed: unless the environment sets it, CANDLE_BARRIER_POOL_SPIN_LIMIT=0 is used (candle's \
@@ -289,7 +289,16 @@ fn set_render_half(
             err: e.into(),
         })?;
     let weights = state.renderer_weights()?;
-    let rh = GpuRenderHalf::new(gpu, &tuning, &state.cfg.model, &weights).map_err(err)?;
+    let percep = state.percep_weights()?;
+    let rh = GpuRenderHalf::new(
+        gpu,
+        &tuning,
+        &state.cfg.model,
+        &weights,
+        state.cfg.losses().box_size,
+        percep.as_ref().map(|(w, f)| (w, *f)),
+    )
+    .map_err(err)?;
     state.set_render_half(Box::new(rh))
 }
 

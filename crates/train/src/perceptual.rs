@@ -54,7 +54,7 @@ pub const IMAGENET_STD: [f64; 3] = [0.229, 0.224, 0.225];
 pub const VGGFACE_MEAN: [f64; 3] = [129.186279296875, 104.76238250732422, 93.59396362304688];
 
 /// AlexNet convolutions: (key, cin, cout, kernel, stride, padding, max-pool before).
-const ALEX: [(&str, usize, usize, usize, usize, usize, bool); 5] = [
+pub const ALEX: [(&str, usize, usize, usize, usize, usize, bool); 5] = [
     ("net.slice1.0", 3, 64, 11, 4, 2, false),
     ("net.slice2.3", 64, 192, 5, 1, 2, true),
     ("net.slice3.6", 192, 384, 3, 1, 1, true),
@@ -63,7 +63,7 @@ const ALEX: [(&str, usize, usize, usize, usize, usize, bool); 5] = [
 ];
 
 /// VGG16 convolutions: (features index, cin, cout). All 3x3, padding 1.
-const VGG: [(usize, usize, usize); 13] = [
+pub const VGG: [(usize, usize, usize); 13] = [
     (0, 3, 64),
     (2, 64, 64),
     (5, 64, 128),
@@ -80,7 +80,7 @@ const VGG: [(usize, usize, usize); 13] = [
 ];
 /// The VGG convolutions run (up to `relu_5_1`), grouped by the feature each block ends with;
 /// a 2x2 max-pool precedes every block but the first.
-const VGG_BLOCKS: [&[usize]; 5] = [&[0], &[2, 5], &[7, 10], &[12, 14, 17], &[19, 21, 24]];
+pub const VGG_BLOCKS: [&[usize]; 5] = [&[0], &[2, 5], &[7, 10], &[12, 14, 17], &[19, 21, 24]];
 
 /// Every key (under `percep_loss.`) of the release's perceptual networks with its shape,
 /// including the two VGG layers the loss never runs.
@@ -226,6 +226,28 @@ impl PerceptualLoss {
 
     fn dtype(&self) -> DType {
         self.alex[0].weight.dtype()
+    }
+
+    /// The weights the loss runs, flattened f32, by key without the `percep_loss.` prefix (for
+    /// another device's copy of the networks).
+    pub fn host_weights(&self) -> Result<HashMap<String, Vec<f32>>> {
+        let names = ALEX.iter().map(|a| a.0.to_string()).chain(
+            VGG_BLOCKS
+                .iter()
+                .flat_map(|b| b.iter())
+                .map(|i| format!("vggface.network.{i}")),
+        );
+        let mut out = HashMap::new();
+        for (name, conv) in names.zip(self.alex.iter().chain(&self.vgg)) {
+            let flat = |t: &Tensor| -> Result<Vec<f32>> {
+                Ok(t.flatten_all()?.to_dtype(DType::F32)?.to_vec1::<f32>()?)
+            };
+            out.insert(format!("{name}.weight"), flat(&conv.weight)?);
+            if let Some(b) = &conv.bias {
+                out.insert(format!("{name}.bias"), flat(b)?);
+            }
+        }
+        Ok(out)
     }
 
     /// Features of an image batch `[B, 3, H, W]` in [0, 1] (cast to the weights' dtype). The

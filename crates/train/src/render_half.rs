@@ -40,12 +40,15 @@ pub struct RenderSample<'a> {
     pub noise: &'a [Vec<f32>],
 }
 
-/// The forward's image terms (means over the sample, as [`crate::TrainLosses`] defines them)
-/// and, when asked for, the two head-box crops `[3, box, box]` (coarse RGB, fine).
+/// The forward's image terms (means over the sample, as [`crate::TrainLosses`] defines them),
+/// the perceptual term when the backend computes it ([`RenderHalf::has_percep`]; its
+/// gradients are then part of the backward) and, when asked for, the two head-box crops
+/// `[3, box, box]` (coarse RGB, fine).
 #[derive(Debug, Clone)]
 pub struct RenderForward {
     pub img: f64,
     pub box_l1: f64,
+    pub percep: Option<f64>,
     pub crops: Option<[Vec<f32>; 2]>,
 }
 
@@ -65,6 +68,10 @@ pub struct RenderGrads {
 pub trait RenderHalf {
     /// The device, in words, for the run's log.
     fn describe(&self) -> String;
+
+    /// Whether the backend computes the perceptual term itself (with the trainer's networks
+    /// and factor, given at its construction).
+    fn has_percep(&self) -> bool;
 
     /// The renderer's weights for the coming samples, by key relative to `upsampler.`.
     fn set_renderer_weights(

@@ -132,6 +132,9 @@ pub struct TrainState {
     render_half: Option<Box<dyn RenderHalf>>,
 }
 
+/// The perceptual networks' host weights (by key without `percep_loss.`) and the term's factor.
+pub type PercepWeights = (HashMap<String, Vec<f32>>, f64);
+
 /// The loss terms' values of a step (this rank's batch).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StepTerms {
@@ -218,6 +221,15 @@ impl TrainState {
         Ok(out)
     }
 
+    /// The perceptual networks' weights (by key without `percep_loss.`) and the term's factor,
+    /// when the term is on: what a [`RenderHalf`] that computes the term is built with.
+    pub fn percep_weights(&self) -> RunResult<Option<PercepWeights>> {
+        match self.losses.percep() {
+            Some(p) => Ok(Some((p.host_weights()?, self.losses.cfg.percep_weight))),
+            None => Ok(None),
+        }
+    }
+
     /// The device of the rendering half, when it is not the CPU.
     pub fn render_device(&self) -> Option<String> {
         self.render_half.as_ref().map(|r| r.describe())
@@ -276,7 +288,14 @@ impl TrainState {
         let boxes = head_boxes(&batch.bbox, h, w)?;
         let box_size = self.losses.cfg.box_size;
         let percep = self.losses.percep();
-        let gt_crops = match percep {
+        if percep.is_none() && rh.has_percep() {
+            return Err(device(
+                "computes a perceptual term the run has switched off".into(),
+            ));
+        }
+        // The perceptual term here when the device does not compute it.
+        let cpu_percep = percep.filter(|_| !rh.has_percep());
+        let gt_crops = match cpu_percep {
             Some(_) => Some(crop_resize(
                 &batch.target_image.to_dtype(DType::F32)?,
                 &boxes,
@@ -314,11 +333,14 @@ impl TrainState {
                 noise: &noise,
             };
             let fwd = rh
-                .forward(&sample, box_size, percep.is_some())
+                .forward(&sample, box_size, cpu_percep.is_some())
                 .map_err(device)?;
             img += fwd.img;
             box_l1 += fwd.box_l1;
-            let crop_grads = match (percep, &gt_crops, fwd.crops) {
+            if let Some(v) = fwd.percep {
+                percep_sum += v;
+            }
+            let crop_grads = match (cpu_percep, &gt_crops, fwd.crops) {
                 (Some(p), Some(gt), Some([cc, fc])) => {
                     let shape = (1, 3, box_size, box_size);
                     let vc = Var::from_vec(cc, shape, &Device::Cpu)?;

@@ -13,6 +13,7 @@ use crate::device::Gpu;
 use crate::error::{input_err, Result};
 use crate::grad::crop::{CropBox, GpuCropResize};
 use crate::grad::layers::l1_grad;
+use crate::grad::perceptual::CropBuffers;
 use crate::kernel::{Bind, Grid, Params, Step};
 
 const L1_SUM: &str = include_str!("../shaders/l1_sum.wgsl");
@@ -33,13 +34,9 @@ pub struct GpuImageLosses {
     /// backward.
     steps: Vec<Step>,
     backward_at: usize,
-    /// `[3, box, box]`: the coarse RGB's and the fine image's crops.
-    pub coarse_crop: wgpu::Buffer,
-    pub fine_crop: wgpu::Buffer,
-    /// Their gradients (the box terms'), which the crops' backward reads.
-    pub grad_coarse_crop: wgpu::Buffer,
-    pub grad_fine_crop: wgpu::Buffer,
-    crop_floats: usize,
+    /// The crops and the two predictions' crop gradients (the box terms' written by the
+    /// forward steps, read by the crops' backward).
+    pub crops: CropBuffers,
 }
 
 fn l1_sum(
@@ -89,6 +86,25 @@ impl GpuImageLosses {
         d_coarse: &wgpu::Buffer,
         d_fine: &wgpu::Buffer,
     ) -> Result<Self> {
+        let crops = CropBuffers::new(gpu, box_size);
+        Self::with_crops(gpu, (c, h, w), b, crops, coarse, fine, gt, d_coarse, d_fine)
+    }
+
+    /// [`GpuImageLosses::new`] with the crops in `crops` (of its size: the box size), which a
+    /// caller keeps from sample to sample and shares with the perceptual term.
+    #[allow(clippy::too_many_arguments)]
+    pub fn with_crops(
+        gpu: &Gpu,
+        (c, h, w): (usize, usize, usize),
+        b: CropBox,
+        crops: CropBuffers,
+        coarse: &wgpu::Buffer,
+        fine: &wgpu::Buffer,
+        gt: &wgpu::Buffer,
+        d_coarse: &wgpu::Buffer,
+        d_fine: &wgpu::Buffer,
+    ) -> Result<Self> {
+        let box_size = crops.size;
         if c < 3 {
             return Err(input_err(
                 "coarse image",
@@ -110,23 +126,18 @@ impl GpuImageLosses {
                 ));
             }
         }
-        let ns = 3 * box_size * box_size;
-        let crop_buf = |what: &str| gpu.buffer(what, 4 * ns as u64);
-        let (cc, fc, gc) = (
-            crop_buf("coarse crop"),
-            crop_buf("fine crop"),
-            crop_buf("target crop"),
-        );
-        let (dcc, dfc) = (crop_buf("dL/dcoarse crop"), crop_buf("dL/dfine crop"));
+        let ns = crops.floats();
+        let (cc, fc, gc) = (&crops.coarse, &crops.fine, &crops.target);
+        let (dcc, dfc) = (&crops.grad_coarse, &crops.grad_fine);
         let values = gpu.buffer("image loss terms", 16);
         let img_scale = 0.5 / n as f32;
         let box_scale = 0.5 / ns as f32;
         let dims = (3, h, w);
         let crop = |images, grad| GpuCropResize::new(gpu, dims, b, box_size, images, grad);
-        let crop_c = crop((coarse, &cc), Some((&dcc, d_coarse)))?;
-        let crop_f = crop((fine, &fc), Some((&dfc, d_fine)))?;
+        let crop_c = crop((coarse, cc), Some((dcc, d_coarse)))?;
+        let crop_f = crop((fine, fc), Some((dfc, d_fine)))?;
         // The target has no gradient.
-        let crop_g = crop((gt, &gc), None)?;
+        let crop_g = crop((gt, gc), None)?;
         let at = At::new;
         let mut steps = vec![
             crop_c.forward().clone(),
@@ -134,13 +145,13 @@ impl GpuImageLosses {
             crop_g.forward().clone(),
             l1_sum(gpu, n, at(coarse), at(gt), img_scale, &values, 0)?,
             l1_sum(gpu, n, at(fine), at(gt), img_scale, &values, 1)?,
-            l1_sum(gpu, ns, at(&cc), at(&gc), box_scale, &values, 2)?,
-            l1_sum(gpu, ns, at(&fc), at(&gc), box_scale, &values, 3)?,
+            l1_sum(gpu, ns, at(cc), at(gc), box_scale, &values, 2)?,
+            l1_sum(gpu, ns, at(fc), at(gc), box_scale, &values, 3)?,
             // The whole-image terms write the gradients, the box terms add to them.
             l1_grad(gpu, n, at(coarse), at(gt), img_scale, at(d_coarse))?,
             l1_grad(gpu, n, at(fine), at(gt), img_scale, at(d_fine))?,
-            l1_grad(gpu, ns, at(&cc), at(&gc), box_scale, at(&dcc))?,
-            l1_grad(gpu, ns, at(&fc), at(&gc), box_scale, at(&dfc))?,
+            l1_grad(gpu, ns, at(cc), at(gc), box_scale, at(dcc))?,
+            l1_grad(gpu, ns, at(fc), at(gc), box_scale, at(dfc))?,
         ];
         let backward_at = steps.len();
         steps.extend(crop_c.backward().iter().cloned());
@@ -149,11 +160,7 @@ impl GpuImageLosses {
             values,
             steps,
             backward_at,
-            coarse_crop: cc,
-            fine_crop: fc,
-            grad_coarse_crop: dcc,
-            grad_fine_crop: dfc,
-            crop_floats: ns,
+            crops,
         })
     }
 
@@ -176,26 +183,28 @@ impl GpuImageLosses {
 
     /// The crops `[3, box, box]` (coarse RGB, fine) after the forward.
     pub fn read_crops(&self, gpu: &Gpu) -> Result<[Vec<f32>; 2]> {
+        let n = self.crops.floats();
         Ok([
-            gpu.read_f32(&self.coarse_crop, self.crop_floats)?,
-            gpu.read_f32(&self.fine_crop, self.crop_floats)?,
+            gpu.read_f32(&self.crops.coarse, n)?,
+            gpu.read_f32(&self.crops.fine, n)?,
         ])
     }
 
     /// Adds another term's gradients of the two crops to the box terms' (between the forward
     /// and the backward).
     pub fn add_crop_grads(&self, gpu: &Gpu, coarse: &[f32], fine: &[f32]) -> Result<()> {
+        let n = self.crops.floats();
         for (name, buf, extra) in [
-            ("dL/dcoarse crop", &self.grad_coarse_crop, coarse),
-            ("dL/dfine crop", &self.grad_fine_crop, fine),
+            ("dL/dcoarse crop", &self.crops.grad_coarse, coarse),
+            ("dL/dfine crop", &self.crops.grad_fine, fine),
         ] {
-            if extra.len() != self.crop_floats {
+            if extra.len() != n {
                 return Err(input_err(
                     name,
-                    format!("{} values, expected {}", extra.len(), self.crop_floats),
+                    format!("{} values, expected {n}", extra.len()),
                 ));
             }
-            let mut g = gpu.read_f32(buf, self.crop_floats)?;
+            let mut g = gpu.read_f32(buf, n)?;
             for (a, b) in g.iter_mut().zip(extra) {
                 *a += b;
             }

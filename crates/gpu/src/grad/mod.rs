@@ -27,6 +27,7 @@ pub mod lifting;
 pub mod modconv;
 pub mod optim;
 pub mod params;
+pub mod perceptual;
 pub mod render_half;
 pub mod render_step;
 pub mod renderer;

@@ -1,7 +1,8 @@
 //! `train --device gpu`'s rendering half ([`gagavatar_train::RenderHalf`]) on wgpu: per
 //! sample the Gaussians uploaded into one reused splat, the training forward of the splatting
-//! and of the renderer with the sample's noise, the image and head-box terms, and on the
-//! backward the caller's crop gradients added, then the chain of [`super::render_step`]:
+//! and of the renderer with the sample's noise, the image and head-box terms, the perceptual
+//! term when built with it ([`GpuPerceptual`]), and on the backward the caller's crop
+//! gradients added (a perceptual term computed elsewhere), then the chain of [`super::render_step`]:
 //! renderer backward, the two gradients of the splatted image summed, splatting backward.
 
 use std::collections::HashMap;
@@ -16,6 +17,7 @@ use crate::device::Gpu;
 use crate::error::{input_err, Result};
 use crate::grad::crop::CropBox;
 use crate::grad::image_loss::GpuImageLosses;
+use crate::grad::perceptual::{CropBuffers, GpuPerceptual};
 use crate::grad::renderer::GpuRendererGrad;
 use crate::grad::splat::GpuSplatGrad;
 use crate::kernel::{linear_grid, Bind, Params, Step};
@@ -37,6 +39,9 @@ pub struct GpuRenderHalf {
     size: usize,
     channels: usize,
     renderer: GpuRendererGrad,
+    /// The head-box crops, kept from sample to sample, and the perceptual term on them.
+    crops: CropBuffers,
+    percep: Option<GpuPerceptual>,
     /// The splat and its backward, rebuilt when the Gaussian count changes.
     splat: Option<(GpuSplat, GpuSplatGrad)>,
     pending: Option<Pending>,
@@ -46,12 +51,16 @@ pub struct GpuRenderHalf {
 impl GpuRenderHalf {
     /// Records the renderer's training forward and backward for `cfg` with `weights` (keys
     /// relative to `upsampler.`; every later step uploads its own with
-    /// [`RenderHalf::set_renderer_weights`]).
+    /// [`RenderHalf::set_renderer_weights`]), head-box crops of `box_size`, and with `percep`
+    /// (the networks' weights by key without `percep_loss.`, and the term's factor) the
+    /// perceptual term on them.
     pub fn new(
         gpu: std::sync::Arc<Gpu>,
         tuning: &Tuning,
         cfg: &ModelConfig,
         weights: &HashMap<String, Vec<f32>>,
+        box_size: usize,
+        percep: Option<(&HashMap<String, Vec<f32>>, f64)>,
     ) -> Result<Self> {
         // The noise maps are buffers, not trained weights: each sample brings its own.
         let mut noise = HashMap::new();
@@ -70,11 +79,18 @@ impl GpuRenderHalf {
                 .ok_or_else(|| crate::GpuError::Weights(format!("no upsampler.{key}")))
         };
         let renderer = GpuRendererGrad::new(&gpu, tuning, cfg, &get)?;
+        let crops = CropBuffers::new(&gpu, box_size);
+        let percep = match percep {
+            Some((w, factor)) => Some(GpuPerceptual::new(&gpu, tuning, w, &crops, factor)?),
+            None => None,
+        };
         Ok(Self {
             tuning: tuning.clone(),
             size: cfg.image_size,
             channels: cfg.color_dim,
             renderer,
+            crops,
+            percep,
             splat: None,
             pending: None,
             background: vec![0.0; cfg.color_dim],
@@ -90,6 +106,15 @@ impl GpuRenderHalf {
     ) -> Result<RenderForward> {
         let gpu = &*self.gpu;
         let (c, size) = (self.channels, self.size);
+        if box_size != self.crops.size {
+            return Err(input_err(
+                "render sample",
+                format!(
+                    "head-box crops of {box_size}, built for {}",
+                    self.crops.size
+                ),
+            ));
+        }
         if s.channels != c || s.target.len() != 3 * size * size {
             return Err(input_err(
                 "render sample",
@@ -138,7 +163,7 @@ impl GpuRenderHalf {
         let target = gpu.buffer_with("target", s.target);
         let d_loss = gpu.buffer("dL/dcoarse (loss terms)", image_bytes);
         let hb = s.head_box;
-        let losses = GpuImageLosses::new(
+        let losses = GpuImageLosses::with_crops(
             gpu,
             (c, size, size),
             CropBox {
@@ -147,7 +172,7 @@ impl GpuRenderHalf {
                 x1: hb.x1,
                 y1: hb.y1,
             },
-            box_size,
+            self.crops.clone(),
             &sp.image,
             &self.renderer.output,
             &target,
@@ -155,7 +180,15 @@ impl GpuRenderHalf {
             &self.renderer.grad_output,
         )?;
         gpu.submit(losses.forward_steps());
+        // The perceptual term adds its gradients to the box terms' before the crops' backward.
+        if let Some(p) = &self.percep {
+            gpu.submit(p.steps());
+        }
         let terms = losses.read(gpu)?;
+        let percep = match &self.percep {
+            Some(p) => Some(p.read(gpu)?),
+            None => None,
+        };
         let crops = if crops {
             Some(losses.read_crops(gpu)?)
         } else {
@@ -165,6 +198,7 @@ impl GpuRenderHalf {
         Ok(RenderForward {
             img: terms.img as f64,
             box_l1: terms.box_l1 as f64,
+            percep,
             crops,
         })
     }
@@ -221,6 +255,10 @@ impl GpuRenderHalf {
 impl RenderHalf for GpuRenderHalf {
     fn describe(&self) -> String {
         self.gpu.describe()
+    }
+
+    fn has_percep(&self) -> bool {
+        self.percep.is_some()
     }
 
     fn set_renderer_weights(

@@ -22,7 +22,9 @@ const SPLIT_RTOL: f64 = 1e-4;
 /// The loss terms: sums of the same f32 values in another order.
 const TERM_RTOL: f64 = 1e-5;
 
-fn states(percep: bool) -> Option<(TrainState, TrainState)> {
+/// A CPU state and a state whose rendering half is on the GPU, with the perceptual term (on
+/// the GPU with `gpu_percep`, else on the CPU from the GPU's crops) or without.
+fn states(percep: bool, gpu_percep: bool) -> Option<(TrainState, TrainState)> {
     gpu()?;
     let cfg = TrainConfig::preset("tiny").unwrap();
     let p = || {
@@ -41,11 +43,14 @@ fn states(percep: bool) -> Option<(TrainState, TrainState)> {
     let mut split = TrainState::new(cfg.clone(), None, p(), &Device::Cpu).unwrap();
     // Its own device: the render half holds it for the run.
     let g = Arc::new(Gpu::new(AdapterPolicy::AllowCpu).unwrap());
+    let pw = split.percep_weights().unwrap().filter(|_| gpu_percep);
     let rh = GpuRenderHalf::new(
         g,
         &Tuning::default(),
         &cfg.model,
         &split.renderer_weights().unwrap(),
+        cfg.losses().box_size,
+        pw.as_ref().map(|(w, f)| (w, *f)),
     )
     .unwrap();
     split.set_render_half(Box::new(rh)).unwrap();
@@ -60,11 +65,22 @@ fn check_terms(step: usize, want: f64, got: f64, what: &str) {
     );
 }
 
-/// Batch 2 with every term on (the perceptual distance on the crops the GPU returns, the
-/// lifting term on the CPU): the terms and every trained parameter's gradient.
+/// Batch 2 with every term on (the perceptual term on the GPU, the lifting term on the CPU):
+/// the terms and every trained parameter's gradient.
 #[test]
 fn split_step_gradients_match_the_cpu_step() {
-    let Some((mut cpu, mut split)) = states(true) else {
+    compare_gradients(true);
+}
+
+/// As [`split_step_gradients_match_the_cpu_step`] with the perceptual term computed on the
+/// CPU from the crops the GPU returns, its gradients sent back.
+#[test]
+fn split_step_with_a_cpu_perceptual_term_matches_the_cpu_step() {
+    compare_gradients(false);
+}
+
+fn compare_gradients(gpu_percep: bool) {
+    let Some((mut cpu, mut split)) = states(true, gpu_percep) else {
         return;
     };
     let batch = synthetic_batch(&cpu.cfg, 2, &Device::Cpu).unwrap();
@@ -103,7 +119,7 @@ fn split_step_gradients_match_the_cpu_step() {
 /// a learning rate either way; the losses stay close.
 #[test]
 fn split_steps_follow_the_cpu_run() {
-    let Some((mut cpu, mut split)) = states(false) else {
+    let Some((mut cpu, mut split)) = states(false, false) else {
         return;
     };
     let batch = synthetic_batch(&cpu.cfg, 2, &Device::Cpu).unwrap();
