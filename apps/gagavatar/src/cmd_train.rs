@@ -37,8 +37,8 @@ weights, optimizer, step, config) and weights.safetensors (the model alone, rele
 RUN/weights.safetensors GAGAvatar.pt` makes the release's torch checkpoint). Ctrl-C writes a \
 checkpoint and stops.\n\n\
 Device: --device gpu runs each sample's splatting, neural renderer, image, head-box and perceptual \
-terms (forward and backward) on the GPU, f32; the reconstruction networks, the lifting term and \
-Adam stay on the CPU, so checkpoints are the same files and a run moves between devices at any \
+terms (forward and backward) and a frozen DINOv2's forward on the GPU, f32; the DPT head, the \
+Gaussian generators (forward and backward), the lifting term and Adam stay on the CPU, so checkpoints are the same files and a run moves between devices at any \
 resume. --device auto takes a real GPU when there is one. Under mpirun each rank takes the GPU \
 of its local rank.\n\n\
 Speed: unless the environment sets it, CANDLE_BARRIER_POOL_SPIN_LIMIT=0 is used (candle's \
@@ -299,6 +299,12 @@ fn set_render_half(
         percep.as_ref().map(|(w, f)| (w, *f)),
     )
     .map_err(err)?;
+    // A frozen backbone (the release's) runs its forward there too.
+    let rh = if state.cfg.model.backbone_frozen() {
+        rh.with_backbone(&state.model).map_err(err)?
+    } else {
+        rh
+    };
     state.set_render_half(Box::new(rh))
 }
 

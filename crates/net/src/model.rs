@@ -189,6 +189,36 @@ impl GagAvatar {
         transform: &Tensor,
         done: &mut dyn FnMut(&'static str),
     ) -> Result<(Avatar, ReconstructTrace)> {
+        self.reconstruct_from(image, transform, None, done)
+    }
+
+    /// [`Self::reconstruct`] with the backbone's four outputs computed elsewhere (a GPU; as
+    /// `Dinov2::forward` returns them, `[B, grid^2, vit_dim]`): only for a frozen backbone,
+    /// whose outputs need no gradient.
+    pub fn reconstruct_with_backbone(
+        &self,
+        image: &Tensor,
+        transform: &Tensor,
+        backbone: [Tensor; 4],
+    ) -> Result<Avatar> {
+        if !self.cfg.backbone_frozen() {
+            return Err(NetError::Config(
+                "backbone outputs from elsewhere need a frozen backbone (they carry no gradient)"
+                    .into(),
+            ));
+        }
+        Ok(self
+            .reconstruct_from(image, transform, Some(backbone), &mut |_| {})?
+            .0)
+    }
+
+    fn reconstruct_from(
+        &self,
+        image: &Tensor,
+        transform: &Tensor,
+        backbone: Option<[Tensor; 4]>,
+        done: &mut dyn FnMut(&'static str),
+    ) -> Result<(Avatar, ReconstructTrace)> {
         let size = self.cfg.image_size;
         let b = match image.dims() {
             [b, 3, h, w] if *b > 0 && *h == size && *w == size => *b,
@@ -208,7 +238,25 @@ impl GagAvatar {
         let [s_pre, s_dino, s_dpt, s_plane, s_g, s_l0, s_l1] = Self::STAGES;
         let input_518 = crate::dino::preprocess(&image, &self.cfg)?;
         done(s_pre);
-        let dino = self.dino.forward(&input_518)?;
+        let dino = match backbone {
+            Some(outs) => {
+                let want = [b, self.cfg.grid() * self.cfg.grid(), self.cfg.vit_dim];
+                if let Some(t) = outs.iter().find(|t| t.dims() != want) {
+                    return Err(input_err(
+                        "backbone outputs",
+                        format!("expected {want:?}, got {:?}", t.dims()),
+                    ));
+                }
+                let [o0, o1, o2, o3] = outs;
+                [
+                    o0.to_dtype(dtype)?,
+                    o1.to_dtype(dtype)?,
+                    o2.to_dtype(dtype)?,
+                    o3.to_dtype(dtype)?,
+                ]
+            }
+            None => self.dino.forward(&input_518)?,
+        };
         let f_id = crate::dino::f_id(&dino[3])?;
         done(s_dino);
         let f_local = self.dpt.forward(&dino, &input_518)?;

@@ -5,6 +5,9 @@
 //! the renderer's weights, per sample the Gaussians, the camera, the target and the noise, and
 //! takes back the loss terms and the gradients of the Gaussians and of every renderer weight.
 //!
+//! A backend may also run the frozen backbone's forward (DINOv2 has no trained weight in the
+//! release recipe, so its outputs enter the graph as constants).
+//!
 //! The split is where the cost is at release size (the renderer and the 512x512 splatting), and
 //! it keeps checkpoints, the optimiser and the data-parallel averaging exactly as on the CPU,
 //! so a run may move between devices at any checkpoint.
@@ -72,6 +75,23 @@ pub trait RenderHalf {
     /// Whether the backend computes the perceptual term itself (with the trainer's networks
     /// and factor, given at its construction).
     fn has_percep(&self) -> bool;
+
+    /// Whether the backend runs the frozen backbone (DINOv2) for the reconstruction
+    /// ([`RenderHalf::backbone`]).
+    fn has_backbone(&self) -> bool {
+        false
+    }
+
+    /// The frozen backbone's four outputs for one source photo `[3, S, S]` in [0, 1] with its
+    /// camera `[3, 4]`, as `gagavatar_net::dino::Dinov2::forward` returns them
+    /// (`[grid^2, vit_dim]` each).
+    fn backbone(
+        &mut self,
+        _image: &[f32],
+        _transform: &[f32],
+    ) -> Result<[Vec<f32>; 4], BackendError> {
+        Err("this device does not run the backbone".into())
+    }
 
     /// The renderer's weights for the coming samples, by key relative to `upsampler.`.
     fn set_renderer_weights(

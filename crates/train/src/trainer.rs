@@ -253,9 +253,42 @@ impl TrainState {
             err,
         };
         let cfg = &self.cfg.model;
-        let avatar = self
-            .model
-            .reconstruct(&batch.source_image, &batch.source_transform)?;
+        let avatar = if cfg.backbone_frozen() && rh.has_backbone() {
+            let images = batch
+                .source_image
+                .to_dtype(DType::F32)?
+                .flatten_from(1)?
+                .to_vec2::<f32>()?;
+            let cams = batch
+                .source_transform
+                .to_dtype(DType::F32)?
+                .flatten_from(1)?
+                .to_vec2::<f32>()?;
+            let g2 = cfg.grid() * cfg.grid();
+            let mut outs: [Vec<f32>; 4] = Default::default();
+            for (im, cam) in images.iter().zip(&cams) {
+                for (o, v) in outs.iter_mut().zip(rh.backbone(im, cam).map_err(device)?) {
+                    if v.len() != g2 * cfg.vit_dim {
+                        return Err(device(
+                            format!("{} backbone values, expected {}", v.len(), g2 * cfg.vit_dim)
+                                .into(),
+                        ));
+                    }
+                    o.extend(v);
+                }
+            }
+            let b = images.len();
+            let [o0, o1, o2, o3] =
+                outs.map(|v| Tensor::from_vec(v, (b, g2, cfg.vit_dim), &Device::Cpu));
+            self.model.reconstruct_with_backbone(
+                &batch.source_image,
+                &batch.source_transform,
+                [o0?, o1?, o2?, o3?],
+            )?
+        } else {
+            self.model
+                .reconstruct(&batch.source_image, &batch.source_transform)?
+        };
         let g = coarse_gaussians(
             cfg,
             &avatar,

@@ -7,6 +7,8 @@
 
 use std::collections::HashMap;
 
+use candle_core::{Device, Tensor};
+use gagavatar_net::model::GagAvatar;
 use gagavatar_net::style_unet::noise_resolution;
 use gagavatar_net::ModelConfig;
 use gagavatar_train::render_half::{
@@ -21,6 +23,7 @@ use crate::grad::perceptual::{CropBuffers, GpuPerceptual};
 use crate::grad::renderer::GpuRendererGrad;
 use crate::grad::splat::GpuSplatGrad;
 use crate::kernel::{linear_grid, Bind, Params, Step};
+use crate::reconstruct::GpuReconstruct;
 use crate::splat::{GpuSplat, SplatInputs};
 use crate::tuning::Tuning;
 
@@ -42,6 +45,8 @@ pub struct GpuRenderHalf {
     /// The head-box crops, kept from sample to sample, and the perceptual term on them.
     crops: CropBuffers,
     percep: Option<GpuPerceptual>,
+    /// The frozen backbone (the reconstruction's first stages), when asked for.
+    backbone: Option<GpuReconstruct>,
     /// The splat and its backward, rebuilt when the Gaussian count changes.
     splat: Option<(GpuSplat, GpuSplatGrad)>,
     pending: Option<Pending>,
@@ -91,11 +96,24 @@ impl GpuRenderHalf {
             renderer,
             crops,
             percep,
+            backbone: None,
             splat: None,
             pending: None,
             background: vec![0.0; cfg.color_dim],
             gpu,
         })
+    }
+
+    /// Also runs the frozen backbone (DINOv2) of `model`'s reconstruction for the trainer
+    /// (its weights never change; the other stages' copies are not used).
+    pub fn with_backbone(mut self, model: &GagAvatar) -> Result<Self> {
+        // f32, as the rest of the step (the f16 tensor-core path is for inference).
+        let tuning = Tuning {
+            mma: false,
+            ..self.tuning.clone()
+        };
+        self.backbone = Some(GpuReconstruct::new(self.gpu.clone(), &tuning, model)?);
+        Ok(self)
     }
 
     fn forward_sample(
@@ -259,6 +277,24 @@ impl RenderHalf for GpuRenderHalf {
 
     fn has_percep(&self) -> bool {
         self.percep.is_some()
+    }
+
+    fn has_backbone(&self) -> bool {
+        self.backbone.is_some()
+    }
+
+    fn backbone(
+        &mut self,
+        image: &[f32],
+        transform: &[f32],
+    ) -> std::result::Result<[Vec<f32>; 4], BackendError> {
+        let Some(r) = &self.backbone else {
+            return Err("built without the backbone".into());
+        };
+        let s = self.size;
+        let image = Tensor::from_slice(image, (1, 3, s, s), &Device::Cpu)?;
+        let transform = Tensor::from_slice(transform, (1, 3, 4), &Device::Cpu)?;
+        Ok(r.backbone(&image, &transform)?)
     }
 
     fn set_renderer_weights(

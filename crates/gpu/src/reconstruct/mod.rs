@@ -296,6 +296,31 @@ impl GpuReconstruct {
         self.run_locked(image, transform)
     }
 
+    /// The frozen backbone alone for a trainer that runs the rest of the reconstruction
+    /// elsewhere: the photo `[1, 3, H, W]` preprocessed and through DINOv2, the four outputs
+    /// DPT reads read back as `gagavatar_net::dino::Dinov2::forward` returns them
+    /// (`[grid^2, vit_dim]` each, patches row-major). `transform` only fills the buffers the
+    /// other stages would read.
+    pub fn backbone(&self, image: &Tensor, transform: &Tensor) -> Result<[Vec<f32>; 4]> {
+        let _guard = self.locked();
+        let inputs = self.host_inputs(image, transform)?;
+        self.upload(&inputs);
+        self.submit(&self.stages[..2]);
+        let (c, g) = (self.dino.c, self.dino.g);
+        let mut out: [Vec<f32>; 4] = Default::default();
+        for (o, buf) in out.iter_mut().zip(&self.dino.outs) {
+            let cm = self.gpu.read_f32(buf, c * g)?;
+            let mut t = vec![0f32; g * c];
+            for ch in 0..c {
+                for tok in 0..g {
+                    t[tok * c + ch] = cm[ch * g + tok];
+                }
+            }
+            *o = t;
+        }
+        Ok(out)
+    }
+
     /// [`GpuReconstruct::run`] into an avatar of its own on the device (the pass's buffers
     /// are overwritten by the next run).
     pub fn run_owned(&self, image: &Tensor, transform: &Tensor) -> Result<GpuAvatar> {
