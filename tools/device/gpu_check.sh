@@ -135,7 +135,7 @@ for device in gpu cpu; do
         --runs "${TRAIN_RUNS:-2}" --seeded-percep --device "$device" \
         > "$OUT/train_bench_$device.txt" 2>&1
     echo "exit $? (train-bench --device $device)" >> "$OUT/summary.txt"
-    grep -E "^train step|^error" "$OUT/train_bench_$device.txt" >> "$OUT/summary.txt"
+    grep -E "^train step|^split step|^error" "$OUT/train_bench_$device.txt" >> "$OUT/summary.txt"
 done
 }
 

@@ -575,5 +575,21 @@ pub fn run_bench(a: TrainBenchArgs) -> Result<()> {
         t.build_s,
         thread_note()
     );
+    if let Some([rec, dev, host, back]) = t.split_medians() {
+        println!(
+            "split step medians: reconstruction forward (CPU{}) {:.1} ms, device (splatting, \
+             renderer, image/box/perceptual terms, forward and backward) {:.1} ms, host {:.1} \
+             ms, reconstruction backward (CPU) {:.1} ms",
+            if cfg.model.backbone_frozen() {
+                ", backbone on the device"
+            } else {
+                ""
+            },
+            rec * 1e3,
+            dev * 1e3,
+            host * 1e3,
+            back * 1e3
+        );
+    }
     Ok(())
 }

@@ -26,14 +26,35 @@ pub struct StepTiming {
     pub backbone_frozen: bool,
     pub percep: bool,
     pub losses: Vec<f64>,
+    /// Per timed step, where a split step's time went (`--device gpu`).
+    pub splits: Vec<crate::trainer::SplitTiming>,
 }
 
 impl StepTiming {
     pub fn median_s(&self) -> f64 {
-        let mut v = self.steps_s.clone();
-        v.sort_by(f64::total_cmp);
-        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+        median(self.steps_s.clone())
     }
+
+    /// Medians of the split steps' parts: reconstruction forward, device, host, backward.
+    pub fn split_medians(&self) -> Option<[f64; 4]> {
+        if self.splits.is_empty() {
+            return None;
+        }
+        let part = |f: fn(&crate::trainer::SplitTiming) -> f64| {
+            median(self.splits.iter().map(f).collect())
+        };
+        Some([
+            part(|t| t.reconstruct_s),
+            part(|t| t.device_s),
+            part(|t| t.host_s),
+            part(|t| t.backward_s),
+        ])
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
 }
 
 /// A synthetic batch of `batch` pairs at the configuration's sizes.
@@ -104,11 +125,13 @@ pub fn time_steps_with(
     let b = synthetic_batch(cfg, batch, device)?;
     let mut steps_s = Vec::new();
     let mut losses = Vec::new();
+    let mut splits = Vec::new();
     for i in 0..=runs {
         let t = Instant::now();
         let r = state.train_step(&b)?;
         if i > 0 {
             steps_s.push(t.elapsed().as_secs_f64());
+            splits.extend(state.last_split());
         }
         losses.push(r.loss);
     }
@@ -119,5 +142,6 @@ pub fn time_steps_with(
         backbone_frozen: cfg.model.backbone_frozen(),
         percep: has_percep,
         losses,
+        splits,
     })
 }

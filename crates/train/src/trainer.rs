@@ -130,6 +130,21 @@ pub struct TrainState {
     collective: Arc<dyn Collective>,
     /// Where the rendering half of each step runs when not in the candle graph (a GPU).
     render_half: Option<Box<dyn RenderHalf>>,
+    /// The last split step's timing.
+    last_split: Option<SplitTiming>,
+}
+
+/// Where a split step's time went (wall seconds; see [`TrainState::last_split`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct SplitTiming {
+    /// The reconstruction's forward in candle (a backbone on the device included).
+    pub reconstruct_s: f64,
+    /// Inside the rendering half's calls (weights, forward, backward; waits included).
+    pub device_s: f64,
+    /// The host work around them: copies, the perceptual term when it runs here.
+    pub host_s: f64,
+    /// The reconstruction's backward in candle (and the lifting term).
+    pub backward_s: f64,
 }
 
 /// The perceptual networks' host weights (by key without `percep_loss.`) and the term's factor.
@@ -186,6 +201,7 @@ impl TrainState {
             poisoned: BTreeSet::new(),
             collective: Arc::new(Single),
             render_half: None,
+            last_split: None,
         })
     }
 
@@ -230,6 +246,11 @@ impl TrainState {
         }
     }
 
+    /// Where the last step's time went, when its rendering half ran on a device.
+    pub fn last_split(&self) -> Option<SplitTiming> {
+        self.last_split
+    }
+
     /// The device of the rendering half, when it is not the CPU.
     pub fn render_device(&self) -> Option<String> {
         self.render_half.as_ref().map(|r| r.describe())
@@ -246,7 +267,9 @@ impl TrainState {
         batch: &BatchTensors,
         seed: u64,
         first: usize,
-    ) -> RunResult<(StepTerms, Option<GradStore>)> {
+    ) -> RunResult<(StepTerms, Option<GradStore>, SplitTiming)> {
+        let t_start = Instant::now();
+        let mut timing = SplitTiming::default();
         let name = rh.describe();
         let device = |err| RunError::Render {
             device: name.clone(),
@@ -289,6 +312,7 @@ impl TrainState {
             self.model
                 .reconstruct(&batch.source_image, &batch.source_transform)?
         };
+        timing.reconstruct_s = t_start.elapsed().as_secs_f64();
         let g = coarse_gaussians(
             cfg,
             &avatar,
@@ -296,8 +320,10 @@ impl TrainState {
             &batch.target_transform,
         )?;
         let vars: HashMap<String, Var> = self.vars()?.into_iter().collect();
-        rh.set_renderer_weights(&self.renderer_weights()?)
-            .map_err(device)?;
+        let weights = self.renderer_weights()?;
+        let t = Instant::now();
+        rh.set_renderer_weights(&weights).map_err(device)?;
+        timing.device_s += t.elapsed().as_secs_f64();
 
         let rows = |t: &Tensor| -> RunResult<Vec<Vec<f32>>> {
             Ok(t.flatten_from(1)?.to_dtype(DType::F32)?.to_vec2::<f32>()?)
@@ -314,7 +340,7 @@ impl TrainState {
                 percep: self.losses.percep().map(|_| f64::NAN),
                 point: self.losses.cfg.lifting.then_some(f64::NAN),
             };
-            return Ok((nan, None));
+            return Ok((nan, None, timing));
         }
         let targets = rows(&batch.target_image)?;
         let (b, _, h, w) = batch.target_image.dims4()?;
@@ -365,9 +391,11 @@ impl TrainState {
                 head_box: boxes[i],
                 noise: &noise,
             };
+            let t = Instant::now();
             let fwd = rh
                 .forward(&sample, box_size, cpu_percep.is_some())
                 .map_err(device)?;
+            timing.device_s += t.elapsed().as_secs_f64();
             img += fwd.img;
             box_l1 += fwd.box_l1;
             if let Some(v) = fwd.percep {
@@ -394,6 +422,7 @@ impl TrainState {
                 }
                 _ => None,
             };
+            let t = Instant::now();
             let gr = rh
                 .backward(
                     crop_grads
@@ -401,6 +430,7 @@ impl TrainState {
                         .map(|[c, f]| [c.as_slice(), f.as_slice()]),
                 )
                 .map_err(device)?;
+            timing.device_s += t.elapsed().as_secs_f64();
             for (k, src) in [gr.means, gr.features, gr.opacities, gr.scales, gr.rotations]
                 .iter()
                 .enumerate()
@@ -425,6 +455,7 @@ impl TrainState {
 
         // The reconstruction's backward: d(sum_k <a_k, g_k>) / dθ carries the Gaussians'
         // gradients g_k into the networks, the lifting term adds its own.
+        let t_back = Instant::now();
         let mut surrogate = Tensor::zeros((), DType::F32, &Device::Cpu)?;
         for (t, gk) in attrs.iter().zip(acc) {
             let gk = Tensor::from_vec(gk, t.dims(), t.device())?.to_dtype(t.dtype())?;
@@ -460,6 +491,11 @@ impl TrainState {
                 Tensor::from_vec(v, t.dims(), t.device())?.to_dtype(t.dtype())?,
             );
         }
+        timing.backward_s = t_back.elapsed().as_secs_f64();
+        timing.host_s = t_start.elapsed().as_secs_f64()
+            - timing.reconstruct_s
+            - timing.device_s
+            - timing.backward_s;
         let b = b as f64;
         let (img, box_l1) = (img / b, box_l1 / b);
         let percep = percep.map(|_| percep_sum / b);
@@ -473,6 +509,7 @@ impl TrainState {
                 point,
             },
             Some(grads),
+            timing,
         ))
     }
 
@@ -573,7 +610,8 @@ impl TrainState {
             Some(mut rh) => {
                 let r = self.split_forward_backward(rh.as_mut(), batch, seed, first);
                 self.render_half = Some(rh);
-                let (terms, grads) = r?;
+                let (terms, grads, timing) = r?;
+                self.last_split = Some(timing);
                 (terms, grads.filter(|_| !poisoned))
             }
             None => {
