@@ -17,7 +17,7 @@ use gagavatar_train::trainer::load_flame;
 use gagavatar_train::{EvalReport, Monitor, Run, StepReport, TrainConfig, TrainState};
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::device_args::DeviceArgs;
+use crate::device_args::{DeviceArgs, DeviceChoice};
 
 #[derive(Debug, Args)]
 #[command(
@@ -271,6 +271,15 @@ fn on_job_teardown(lead: bool, dir: &std::path::Path) {
 #[cfg(not(unix))]
 fn on_job_teardown(_lead: bool, _dir: &std::path::Path) {}
 
+/// The ablation without a neural renderer has no rendering half to move: `--device gpu` is an
+/// error, `auto` keeps the CPU.
+fn check_device(device: &DeviceArgs, cfg: &TrainConfig) -> Result<()> {
+    if cfg.model.no_neural_renderer && device.device == DeviceChoice::Gpu {
+        bail!("the no_neural_renderer ablation trains on the CPU only: use --device cpu (or auto)");
+    }
+    Ok(())
+}
+
 /// Moves the rendering half of `state`'s steps onto `gpu`.
 fn set_render_half(
     state: &mut TrainState,
@@ -351,15 +360,24 @@ pub fn run_train(a: TrainArgs) -> Result<()> {
             cfg.val.every = v;
         }
         cfg.validate().map_err(anyhow::Error::msg)?;
+        // Before the run folder exists.
+        check_device(&a.device, &cfg)?;
         Run::create_with(cfg, out, a.force, &dev, &monitor, ranks.clone())?
     };
     if ranks.size() > 1 {
         on_job_teardown(lead, run.dir());
     }
+    check_device(&a.device, run.config())?;
     // Each rank on its machine takes its own GPU.
-    if let Some(gpu) = a
-        .device
-        .open_for_training_nth("training's splatting and renderer", local_rank())?
+    let device = match run.config().model.no_neural_renderer {
+        true => DeviceArgs {
+            device: DeviceChoice::Cpu,
+            ..a.device
+        },
+        false => a.device,
+    };
+    if let Some(gpu) =
+        device.open_for_training_nth("training's splatting and renderer", local_rank())?
     {
         set_render_half(&mut run.state, gpu, &a.device)?;
     }
