@@ -55,8 +55,7 @@ pub struct RenderForward {
     pub crops: Option<[Vec<f32>; 2]>,
 }
 
-/// The sample's gradients: of each Gaussian attribute (the layouts of [`RenderSample`]) and of
-/// every renderer weight by key relative to `upsampler.`, flattened in the checkpoint's layout.
+/// The sample's gradients of each Gaussian attribute (the layouts of [`RenderSample`]).
 #[derive(Debug, Clone)]
 pub struct RenderGrads {
     pub means: Vec<f32>,
@@ -64,7 +63,6 @@ pub struct RenderGrads {
     pub opacities: Vec<f32>,
     pub scales: Vec<f32>,
     pub rotations: Vec<f32>,
-    pub renderer: Vec<(String, Vec<f32>)>,
 }
 
 /// A device that runs the rendering half (see the module's text).
@@ -109,7 +107,17 @@ pub trait RenderHalf {
     ) -> Result<RenderForward, BackendError>;
 
     /// The backward of the last forward, with `crop_grads` (the caller's own term's gradients
-    /// of the two crops) added to the box terms'. The gradients are of the sample's own terms
-    /// (a batch's mean is the caller's to take).
-    fn backward(&mut self, crop_grads: Option<[&[f32]; 2]>) -> Result<RenderGrads, BackendError>;
+    /// of the two crops) added to the box terms'. Returns the Gaussians' gradients of the
+    /// sample's own terms; the renderer weights' gradients, times `renderer_scale`, are added
+    /// to the step's sums on the device ([`RenderHalf::renderer_grads`]).
+    fn backward(
+        &mut self,
+        crop_grads: Option<[&[f32]; 2]>,
+        renderer_scale: f32,
+    ) -> Result<RenderGrads, BackendError>;
+
+    /// The renderer weights' gradients summed (each sample's times its `renderer_scale`) over
+    /// the backward calls since the last call, by key relative to `upsampler.`, flattened in
+    /// the checkpoint's layout; the sums then start again.
+    fn renderer_grads(&mut self) -> Result<Vec<(String, Vec<f32>)>, BackendError>;
 }

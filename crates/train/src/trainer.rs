@@ -369,7 +369,6 @@ impl TrainState {
             .iter()
             .map(|a| vec![0f32; a.len() * a[0].len()])
             .collect();
-        let mut renderer: HashMap<String, Vec<f32>> = HashMap::new();
         let (mut img, mut box_l1, mut percep_sum) = (0.0, 0.0, 0.0);
         for i in 0..b {
             let noise = (0..n_noise)
@@ -428,6 +427,7 @@ impl TrainState {
                     crop_grads
                         .as_ref()
                         .map(|[c, f]| [c.as_slice(), f.as_slice()]),
+                    inv_b,
                 )
                 .map_err(device)?;
             timing.device_s += t.elapsed().as_secs_f64();
@@ -445,13 +445,11 @@ impl TrainState {
                     *a = v * inv_b;
                 }
             }
-            for (key, v) in gr.renderer {
-                let e = renderer.entry(key).or_insert_with(|| vec![0f32; v.len()]);
-                for (a, x) in e.iter_mut().zip(&v) {
-                    *a += x * inv_b;
-                }
-            }
         }
+        // The batch's mean, summed on the device.
+        let t = Instant::now();
+        let renderer = rh.renderer_grads().map_err(device)?;
+        timing.device_s += t.elapsed().as_secs_f64();
 
         // The reconstruction's backward: d(sum_k <a_k, g_k>) / dθ carries the Gaussians'
         // gradients g_k into the networks, the lifting term adds its own.

@@ -29,6 +29,94 @@ use crate::tuning::Tuning;
 
 const ADD: &str = include_str!("../shaders/add.wgsl");
 
+/// Each renderer gradient buffer's weighted sum over a step's samples: one accumulator per
+/// gradient buffer (packed parameters share theirs, at the same offsets), the additions
+/// recorded once with a shared scale, read back once per step.
+struct Accumulated {
+    /// (the module's buffers: 0 the U-Net's, 1 the decoder's; buffer index; accumulator)
+    bufs: Vec<(usize, usize, wgpu::Buffer)>,
+    scale: wgpu::Buffer,
+    steps: Vec<Step>,
+    /// Samples added since the last read.
+    samples: usize,
+}
+
+const ACCUMULATE: &str = include_str!("../shaders/accumulate.wgsl");
+
+impl Accumulated {
+    fn new(gpu: &Gpu, r: &GpuRendererGrad) -> Result<Self> {
+        let k = gpu.kernel(
+            "accumulate",
+            ACCUMULATE,
+            &[],
+            &[Bind::Uniform, Bind::Uniform, Bind::Read, Bind::ReadWrite],
+        )?;
+        let scale = gpu.uniform("accumulate scale", &Params::new().f(1.0).u(1).u(0).u(0));
+        let mut bufs = Vec::new();
+        let mut steps = Vec::new();
+        let modules: [(&[wgpu::Buffer], &[crate::grad::params::Param]); 2] = [
+            (&r.buffers, &r.params),
+            (&r.decoder.buffers, &r.decoder.params),
+        ];
+        for (m, (buffers, params)) in modules.into_iter().enumerate() {
+            let mut seen = std::collections::BTreeSet::new();
+            for p in params {
+                if !seen.insert(p.grad) {
+                    continue;
+                }
+                let g = &buffers[p.grad];
+                let n = (g.size() / 4) as usize;
+                let acc = gpu.buffer("accumulated gradient", g.size());
+                let u = gpu.uniform("accumulate", &Params::new().u(n as u32).u(0).u(0).u(0));
+                let bg = gpu.bind(&k, &[&u, &scale, g, &acc])?;
+                steps.push(Step::new(k.clone(), bg, linear_grid(n, 256)));
+                bufs.push((m, p.grad, acc));
+            }
+        }
+        Ok(Self {
+            bufs,
+            scale,
+            steps,
+            samples: 0,
+        })
+    }
+
+    /// Adds `scale` times the renderer's current gradients.
+    fn add(&mut self, gpu: &Gpu, scale: f32) {
+        let first = u32::from(self.samples == 0);
+        gpu.queue.write_buffer(
+            &self.scale,
+            0,
+            bytemuck::cast_slice(&Params::new().f(scale).u(first).u(0).u(0).words()),
+        );
+        gpu.submit(&self.steps);
+        self.samples += 1;
+    }
+
+    /// The sums by parameter key, and a fresh start.
+    fn read(&mut self, gpu: &Gpu, r: &GpuRendererGrad) -> Result<Vec<(String, Vec<f32>)>> {
+        if self.samples == 0 {
+            return Err(input_err(
+                "renderer gradients",
+                "no backward since the last read",
+            ));
+        }
+        let mut out = Vec::new();
+        let modules: [&[crate::grad::params::Param]; 2] = [&r.params, &r.decoder.params];
+        for (m, params) in modules.into_iter().enumerate() {
+            for p in params {
+                let Some((_, _, acc)) = self.bufs.iter().find(|b| b.0 == m && b.1 == p.grad) else {
+                    return Err(input_err("renderer gradients", "no accumulator"));
+                };
+                let all = gpu.read_f32(acc, p.offset + p.len)?;
+                out.push((p.key.clone(), all[p.offset..].to_vec()));
+            }
+        }
+        self.samples = 0;
+        Ok(out)
+    }
+}
+
 /// What a forward leaves for its backward.
 struct Pending {
     losses: GpuImageLosses,
@@ -47,6 +135,8 @@ pub struct GpuRenderHalf {
     percep: Option<GpuPerceptual>,
     /// The frozen backbone (the reconstruction's first stages), when asked for.
     backbone: Option<GpuReconstruct>,
+    /// The step's renderer gradients summed on the device (see [`Accumulated`]).
+    acc: Accumulated,
     /// The splat and its backward, rebuilt when the Gaussian count changes.
     splat: Option<(GpuSplat, GpuSplatGrad)>,
     pending: Option<Pending>,
@@ -85,6 +175,7 @@ impl GpuRenderHalf {
         };
         let renderer = GpuRendererGrad::new(&gpu, tuning, cfg, &get)?;
         let crops = CropBuffers::new(&gpu, box_size);
+        let acc = Accumulated::new(&gpu, &renderer)?;
         let percep = match percep {
             Some((w, factor)) => Some(GpuPerceptual::new(&gpu, tuning, w, &crops, factor)?),
             None => None,
@@ -97,6 +188,7 @@ impl GpuRenderHalf {
             crops,
             percep,
             backbone: None,
+            acc,
             splat: None,
             pending: None,
             background: vec![0.0; cfg.color_dim],
@@ -221,7 +313,11 @@ impl GpuRenderHalf {
         })
     }
 
-    fn backward_sample(&mut self, crop_grads: Option<[&[f32]; 2]>) -> Result<RenderGrads> {
+    fn backward_sample(
+        &mut self,
+        crop_grads: Option<[&[f32]; 2]>,
+        renderer_scale: f32,
+    ) -> Result<RenderGrads> {
         let gpu = &*self.gpu;
         let (Some(p), Some((sp, sg))) = (self.pending.take(), self.splat.as_ref()) else {
             return Err(input_err(
@@ -252,6 +348,7 @@ impl GpuRenderHalf {
         );
         gpu.submit(std::slice::from_ref(&add));
         sg.submit_backward(gpu);
+        self.acc.add(gpu, renderer_scale);
         let g = sg.read(gpu)?;
         let rows = |first: usize, width: usize| -> Vec<f32> {
             g.geom
@@ -265,7 +362,6 @@ impl GpuRenderHalf {
             scales: rows(4, 3),
             rotations: rows(7, 4),
             features: g.features,
-            renderer: self.renderer.read_grads(gpu)?,
         })
     }
 }
@@ -302,6 +398,8 @@ impl RenderHalf for GpuRenderHalf {
         weights: &HashMap<String, Vec<f32>>,
     ) -> std::result::Result<(), BackendError> {
         let value = |key: &str| weights.get(key).map(|v| v.as_slice());
+        // A new step: its sums start from nothing (even after a step that failed midway).
+        self.acc.samples = 0;
         Ok(self.renderer.set_weights(&self.gpu, &value)?)
     }
 
@@ -317,7 +415,12 @@ impl RenderHalf for GpuRenderHalf {
     fn backward(
         &mut self,
         crop_grads: Option<[&[f32]; 2]>,
+        renderer_scale: f32,
     ) -> std::result::Result<RenderGrads, BackendError> {
-        Ok(self.backward_sample(crop_grads)?)
+        Ok(self.backward_sample(crop_grads, renderer_scale)?)
+    }
+
+    fn renderer_grads(&mut self) -> std::result::Result<Vec<(String, Vec<f32>)>, BackendError> {
+        Ok(self.acc.read(&self.gpu, &self.renderer)?)
     }
 }
