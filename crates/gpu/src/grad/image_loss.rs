@@ -39,7 +39,8 @@ pub struct GpuImageLosses {
     pub crops: CropBuffers,
 }
 
-fn l1_sum(
+/// `out[slot] = scale * sum |a - b|` over `n` values, in one workgroup's fixed order.
+pub(crate) fn l1_sum(
     gpu: &Gpu,
     n: usize,
     a: At,

@@ -16,11 +16,12 @@ use gagavatar_train::perceptual::{
 };
 
 use super::conv::{input_grad, ConvGrad};
+use super::image_loss::l1_sum;
 use super::layers::{act_backward, Kept};
 use crate::conv::{Act, At, Conv, Ops};
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
-use crate::kernel::{linear_grid, Bind, Grid, Params, Step};
+use crate::kernel::{linear_grid, Bind, Params, Step};
 use crate::tuning::Tuning;
 
 const AFFINE: &str = include_str!("../shaders/channel_affine.wgsl");
@@ -28,7 +29,6 @@ const MAXPOOL: &str = include_str!("../shaders/maxpool.wgsl");
 const MAXPOOL_BACKWARD: &str = include_str!("../shaders/maxpool_backward.wgsl");
 const COL2IM: &str = include_str!("../shaders/col2im.wgsl");
 const DISTANCE: &str = include_str!("../shaders/percep_distance.wgsl");
-const L1_SUM: &str = include_str!("../shaders/l1_sum.wgsl");
 
 /// The three `[3, size, size]` crops and the two prediction crops' gradients, shared by the
 /// box terms (which write them) and the perceptual term (which reads the crops and adds to the
@@ -248,7 +248,6 @@ impl GpuPerceptual {
         // pre-activation gradients, per-position distances.
         let (mut split, mut cols, mut flipped, mut dz, mut positions) = (1, 1, 1, 1, 1);
         for (net, sh) in nets.iter().zip(&shapes) {
-            let mut prev = (3, size, size);
             for (l, &(c, h, w)) in net.iter().zip(sh) {
                 if let Layer::Conv { conv, .. } = *l {
                     let f = &convs[conv];
@@ -268,9 +267,7 @@ impl GpuPerceptual {
                     dz = dz.max(c * h * w);
                     positions = positions.max(h * w);
                 }
-                prev = (c, h, w);
             }
-            let _ = prev;
         }
         let buf = |what: &str, n: usize| gpu.buffer(what, 4 * n as u64);
         let split = buf("perceptual split-K sums", split);
@@ -560,7 +557,16 @@ fn backward(
             );
             let bg = gpu.bind(&k, &[&u, &pred[i], &target[i], sc.d_pos, &g[i]])?;
             steps.push(Step::new(k, bg, linear_grid(n, 256)));
-            steps.push(sum_step(gpu, n, sc, scale, slot)?);
+            // The distances are non-negative: their L1 sum against zeros is their sum.
+            steps.push(l1_sum(
+                gpu,
+                n,
+                At::new(sc.d_pos),
+                At::new(sc.zeros),
+                scale,
+                sc.values,
+                slot,
+            )?);
             slot += 1;
         }
         match net[i] {
@@ -661,30 +667,6 @@ fn backward(
         }
     }
     Ok(steps)
-}
-
-/// `values[slot] = scale * sum(d_pos[..n])` (the distances are non-negative).
-fn sum_step(gpu: &Gpu, n: usize, sc: &Scratch, scale: f32, slot: u32) -> Result<Step> {
-    let k = gpu.kernel(
-        "l1_sum",
-        L1_SUM,
-        &[],
-        &[Bind::Uniform, Bind::Read, Bind::Read, Bind::ReadWrite],
-    )?;
-    let u = gpu.uniform(
-        "perceptual sum",
-        &Params::new()
-            .u(n as u32)
-            .u(0)
-            .u(0)
-            .u(slot)
-            .f(scale)
-            .u(0)
-            .u(0)
-            .u(0),
-    );
-    let g = gpu.bind(&k, &[&u, sc.d_pos, sc.zeros, sc.values])?;
-    Ok(Step::new(k, g, Grid::Fixed([1, 1, 1])))
 }
 
 #[cfg(test)]

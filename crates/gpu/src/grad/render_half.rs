@@ -101,15 +101,19 @@ impl Accumulated {
                 "no backward since the last read",
             ));
         }
+        // Each accumulator read once (packed parameters share one).
+        let mut read = std::collections::HashMap::new();
+        for (m, i, acc) in &self.bufs {
+            read.insert((*m, *i), gpu.read_f32(acc, (acc.size() / 4) as usize)?);
+        }
         let mut out = Vec::new();
         let modules: [&[crate::grad::params::Param]; 2] = [&r.params, &r.decoder.params];
         for (m, params) in modules.into_iter().enumerate() {
             for p in params {
-                let Some((_, _, acc)) = self.bufs.iter().find(|b| b.0 == m && b.1 == p.grad) else {
+                let Some(all) = read.get(&(m, p.grad)) else {
                     return Err(input_err("renderer gradients", "no accumulator"));
                 };
-                let all = gpu.read_f32(acc, p.offset + p.len)?;
-                out.push((p.key.clone(), all[p.offset..].to_vec()));
+                out.push((p.key.clone(), all[p.offset..p.offset + p.len].to_vec()));
             }
         }
         self.samples = 0;
