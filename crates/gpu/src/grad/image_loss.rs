@@ -12,11 +12,9 @@ use crate::conv::At;
 use crate::device::Gpu;
 use crate::error::{input_err, Result};
 use crate::grad::crop::{CropBox, GpuCropResize};
-use crate::grad::layers::l1_grad;
+use crate::grad::layers::{l1_grad, l1_sum};
 use crate::grad::perceptual::CropBuffers;
-use crate::kernel::{Bind, Grid, Params, Step};
-
-const L1_SUM: &str = include_str!("../shaders/l1_sum.wgsl");
+use crate::kernel::Step;
 
 /// The terms' values: `img`, `box`.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -37,38 +35,6 @@ pub struct GpuImageLosses {
     /// The crops and the two predictions' crop gradients (the box terms' written by the
     /// forward steps, read by the crops' backward).
     pub crops: CropBuffers,
-}
-
-/// `out[slot] = scale * sum |a - b|` over `n` values, in one workgroup's fixed order.
-pub(crate) fn l1_sum(
-    gpu: &Gpu,
-    n: usize,
-    a: At,
-    b: At,
-    scale: f32,
-    out: &wgpu::Buffer,
-    slot: u32,
-) -> Result<Step> {
-    let k = gpu.kernel(
-        "l1_sum",
-        L1_SUM,
-        &[],
-        &[Bind::Uniform, Bind::Read, Bind::Read, Bind::ReadWrite],
-    )?;
-    let u = gpu.uniform(
-        "l1 sum",
-        &Params::new()
-            .u(n as u32)
-            .u(a.off)
-            .u(b.off)
-            .u(slot)
-            .f(scale)
-            .u(0)
-            .u(0)
-            .u(0),
-    );
-    let g = gpu.bind(&k, &[&u, a.buf, b.buf, out])?;
-    Ok(Step::new(k, g, Grid::Fixed([1, 1, 1])))
 }
 
 impl GpuImageLosses {

@@ -10,6 +10,7 @@ const ACT_BACKWARD: &str = include_str!("../shaders/act_backward.wgsl");
 const RESIZE_BACKWARD: &str = include_str!("../shaders/resize_backward.wgsl");
 const RMS_NORM_BACKWARD: &str = include_str!("../shaders/rms_norm_backward.wgsl");
 const L1_GRAD: &str = include_str!("../shaders/l1_grad.wgsl");
+const L1_SUM: &str = include_str!("../shaders/l1_sum.wgsl");
 
 /// An activation and the value its backward reads (what the forward keeps).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -131,4 +132,36 @@ pub fn l1_grad(gpu: &Gpu, n: usize, pred: At, target: At, scale: f32, out: At) -
     );
     let g = gpu.bind(&k, &[&u, pred.buf, target.buf, out.buf])?;
     Ok(Step::new(k, g, linear_grid(n, 256)))
+}
+
+/// `out[slot] = scale * sum |a - b|` over `n` values, in one workgroup's fixed order.
+pub fn l1_sum(
+    gpu: &Gpu,
+    n: usize,
+    a: At,
+    b: At,
+    scale: f32,
+    out: &wgpu::Buffer,
+    slot: u32,
+) -> Result<Step> {
+    let k = gpu.kernel(
+        "l1_sum",
+        L1_SUM,
+        &[],
+        &[Bind::Uniform, Bind::Read, Bind::Read, Bind::ReadWrite],
+    )?;
+    let u = gpu.uniform(
+        "l1 sum",
+        &Params::new()
+            .u(n as u32)
+            .u(a.off)
+            .u(b.off)
+            .u(slot)
+            .f(scale)
+            .u(0)
+            .u(0)
+            .u(0),
+    );
+    let g = gpu.bind(&k, &[&u, a.buf, b.buf, out])?;
+    Ok(Step::new(k, g, Grid::Fixed([1, 1, 1])))
 }

@@ -16,8 +16,7 @@ use gagavatar_train::perceptual::{
 };
 
 use super::conv::{input_grad, ConvGrad};
-use super::image_loss::l1_sum;
-use super::layers::{act_backward, Kept};
+use super::layers::{act_backward, l1_sum, Kept};
 use crate::conv::{Act, At, Conv, Ops};
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
