@@ -308,12 +308,16 @@ fn set_render_half(
         percep.as_ref().map(|(w, f)| (w, *f)),
     )
     .map_err(err)?;
-    // A frozen backbone (the release's) runs its forward there too.
+    // A frozen backbone (the release's) runs its forward there too, and so do the lifting
+    // generators (their convolutions at plane size are half the reconstruction's work).
     let rh = if state.cfg.model.backbone_frozen() {
         rh.with_backbone(&state.model).map_err(err)?
     } else {
         rh
     };
+    let rh = rh
+        .with_lifting(&state.cfg.model, &state.lifting_weights()?)
+        .map_err(err)?;
     state.set_render_half(Box::new(rh))
 }
 

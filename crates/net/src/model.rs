@@ -219,6 +219,68 @@ impl GagAvatar {
         backbone: Option<[Tensor; 4]>,
         done: &mut dyn FnMut(&'static str),
     ) -> Result<(Avatar, ReconstructTrace)> {
+        let (expr, trace) = self.features_from(image, transform, backbone, done)?;
+        let [_, _, _, _, _, s_l0, s_l1] = Self::STAGES;
+        let (f_local, enc) = (&trace.f_local, &trace.dir_encoding);
+        let l0 = self.gen_l0.forward(f_local, enc)?;
+        done(s_l0);
+        let dir = trace.plane_dir.unsqueeze(1)?;
+        let xyz0 = (&trace.plane_points + l0.distance.broadcast_mul(&dir)?)?;
+        let (lifted_xyz, attrs) = if self.cfg.one_plane {
+            done(s_l1);
+            (xyz0, concat_attributes(&[&expr, &l0.attrs])?)
+        } else {
+            let l1 = self.gen_l1.forward(f_local, enc)?;
+            done(s_l1);
+            let xyz1 = (&trace.plane_points - l1.distance.broadcast_mul(&dir)?)?;
+            (
+                Tensor::cat(&[xyz0, xyz1], 1)?,
+                concat_attributes(&[&expr, &l0.attrs, &l1.attrs])?,
+            )
+        };
+        let GaussianAttributes {
+            colors,
+            opacities,
+            scales,
+            rotations,
+        } = attrs;
+        let avatar = Avatar {
+            lifted_xyz,
+            colors,
+            opacities,
+            scales,
+            rotations,
+        };
+        Ok((avatar, trace))
+    }
+
+    /// The reconstruction up to the lifting generators: the expression Gaussians' attributes
+    /// `[B, V, k]` and the values the lifting generators read (`f_local`, the plane and the
+    /// direction encoding, in the trace), for a trainer that runs those generators elsewhere
+    /// (a GPU) and brings the gradient of `f_local` back. `backbone`: as
+    /// [`Self::reconstruct_with_backbone`] takes it (frozen backbones only).
+    pub fn reconstruct_features(
+        &self,
+        image: &Tensor,
+        transform: &Tensor,
+        backbone: Option<[Tensor; 4]>,
+    ) -> Result<(GaussianAttributes, ReconstructTrace)> {
+        if backbone.is_some() && !self.cfg.backbone_frozen() {
+            return Err(NetError::Config(
+                "backbone outputs from elsewhere need a frozen backbone (they carry no gradient)"
+                    .into(),
+            ));
+        }
+        self.features_from(image, transform, backbone, &mut |_| {})
+    }
+
+    fn features_from(
+        &self,
+        image: &Tensor,
+        transform: &Tensor,
+        backbone: Option<[Tensor; 4]>,
+        done: &mut dyn FnMut(&'static str),
+    ) -> Result<(GaussianAttributes, ReconstructTrace)> {
         let size = self.cfg.image_size;
         let b = match image.dims() {
             [b, 3, h, w] if *b > 0 && *h == size && *w == size => *b,
@@ -235,7 +297,7 @@ impl GagAvatar {
         let image = image.to_dtype(dtype)?;
         let transform = transform.to_dtype(dtype)?;
 
-        let [s_pre, s_dino, s_dpt, s_plane, s_g, s_l0, s_l1] = Self::STAGES;
+        let [s_pre, s_dino, s_dpt, s_plane, s_g, _, _] = Self::STAGES;
         let input_518 = crate::dino::preprocess(&image, &self.cfg)?;
         done(s_pre);
         let dino = match backbone {
@@ -274,35 +336,6 @@ impl GagAvatar {
             self.gen_g.forward(&self.head_base, &f_id, &enc)?
         };
         done(s_g);
-        let l0 = self.gen_l0.forward(&f_local, &enc)?;
-        done(s_l0);
-        let dir = plane_dir.unsqueeze(1)?;
-        let xyz0 = (&plane_points + l0.distance.broadcast_mul(&dir)?)?;
-        let (lifted_xyz, attrs) = if self.cfg.one_plane {
-            done(s_l1);
-            (xyz0, concat_attributes(&[&expr, &l0.attrs])?)
-        } else {
-            let l1 = self.gen_l1.forward(&f_local, &enc)?;
-            done(s_l1);
-            let xyz1 = (&plane_points - l1.distance.broadcast_mul(&dir)?)?;
-            (
-                Tensor::cat(&[xyz0, xyz1], 1)?,
-                concat_attributes(&[&expr, &l0.attrs, &l1.attrs])?,
-            )
-        };
-        let GaussianAttributes {
-            colors,
-            opacities,
-            scales,
-            rotations,
-        } = attrs;
-        let avatar = Avatar {
-            lifted_xyz,
-            colors,
-            opacities,
-            scales,
-            rotations,
-        };
         let trace = ReconstructTrace {
             input_518,
             dino,
@@ -312,7 +345,7 @@ impl GagAvatar {
             plane_dir,
             dir_encoding: enc,
         };
-        Ok((avatar, trace))
+        Ok((expr, trace))
     }
 
     /// Renders the avatar with target FLAME vertices `[B, V, 3]` (already scaled by 5) from

@@ -56,6 +56,8 @@ pub use metrics::{
 pub use nearest::{lifting_loss, KdTree, LIFTING_WEIGHT};
 pub use pairs::{eval_pairs, Pair, PairSampler};
 pub use perceptual::{PerceptualFeatures, PerceptualLoss, PERCEP_PREFIX};
-pub use render_half::{BackendError, RenderForward, RenderGrads, RenderHalf, RenderSample};
+pub use render_half::{
+    BackendError, LiftSample, LiftedGaussians, RenderForward, RenderGrads, RenderHalf, RenderSample,
+};
 pub use run_error::{RunError, RunResult};
 pub use trainer::{Monitor, NoMonitor, Run, RunSummary, StepReport, TrainState};

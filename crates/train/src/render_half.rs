@@ -6,7 +6,11 @@
 //! takes back the loss terms and the gradients of the Gaussians and of every renderer weight.
 //!
 //! A backend may also run the frozen backbone's forward (DINOv2 has no trained weight in the
-//! release recipe, so its outputs enter the graph as constants).
+//! release recipe, so its outputs enter the graph as constants), and the two lifting
+//! generators (`gs_generator_l0` / `l1`, four convolutions over `F_local` at plane size each):
+//! forward per sample to the lifted Gaussians, backward from their gradients to the gradient
+//! of `F_local` (which the trainer carries into the DPT head) and the generators' weight
+//! gradients, summed over the step on the device.
 //!
 //! The split is where the cost is at release size (the renderer and the 512x512 splatting), and
 //! it keeps checkpoints, the optimiser and the data-parallel averaging exactly as on the CPU,
@@ -65,6 +69,36 @@ pub struct RenderGrads {
     pub rotations: Vec<f32>,
 }
 
+/// One sample's inputs of the lifting generators (host values, row-major, f32).
+#[derive(Debug, Clone, Copy)]
+pub struct LiftSample<'a> {
+    /// `[F, S, S]`: the DPT head's local features.
+    pub f_local: &'a [f32],
+    /// `[27]`: the view direction's encoding.
+    pub encoding: &'a [f32],
+    /// `[S * S, 3]`: the plane's points.
+    pub plane_points: &'a [f32],
+    /// `[3]`: the view direction.
+    pub plane_dir: &'a [f32],
+}
+
+/// The lifted Gaussians of one sample, both planes (`l0` then `l1`; `l0` alone with the
+/// `one_plane` ablation), in the layouts of [`RenderSample`]; their gradients come back to
+/// [`RenderHalf::lift_backward`] in the same layouts.
+#[derive(Debug, Clone, Default)]
+pub struct LiftedGaussians {
+    /// `[P S^2, 3]`
+    pub means: Vec<f32>,
+    /// `[P S^2, C]`
+    pub features: Vec<f32>,
+    /// `[P S^2]`
+    pub opacities: Vec<f32>,
+    /// `[P S^2, 3]`
+    pub scales: Vec<f32>,
+    /// `[P S^2, 4]`, normalised
+    pub rotations: Vec<f32>,
+}
+
 /// A device that runs the rendering half (see the module's text).
 pub trait RenderHalf {
     /// The device, in words, for the run's log.
@@ -89,6 +123,39 @@ pub trait RenderHalf {
         _transform: &[f32],
     ) -> Result<[Vec<f32>; 4], BackendError> {
         Err("this device does not run the backbone".into())
+    }
+
+    /// Whether the backend runs the lifting generators ([`RenderHalf::lift_forward`]).
+    fn has_lifting(&self) -> bool {
+        false
+    }
+
+    /// The lifting generators' weights for the coming samples, by checkpoint key
+    /// (`gs_generator_l0.gaussian_conv.0.weight`, ...); their gradient sums start again.
+    fn set_lifting_weights(
+        &mut self,
+        _weights: &HashMap<String, Vec<f32>>,
+    ) -> Result<(), BackendError> {
+        Err("this device does not run the lifting generators".into())
+    }
+
+    /// The lifted Gaussians of one sample.
+    fn lift_forward(&mut self, _sample: &LiftSample) -> Result<LiftedGaussians, BackendError> {
+        Err("this device does not run the lifting generators".into())
+    }
+
+    /// The backward of the last [`RenderHalf::lift_forward`] from the gradients of its
+    /// Gaussians (already weighted as the sample's share of the step's loss): returns the
+    /// gradient of `f_local` `[F, S, S]` and adds the generators' weight gradients to the
+    /// step's sums on the device.
+    fn lift_backward(&mut self, _grads: &LiftedGaussians) -> Result<Vec<f32>, BackendError> {
+        Err("this device does not run the lifting generators".into())
+    }
+
+    /// The lifting generators' weight gradients summed since [`RenderHalf::set_lifting_weights`],
+    /// by checkpoint key, flattened in the checkpoint's layout.
+    fn lifting_grads(&mut self) -> Result<Vec<(String, Vec<f32>)>, BackendError> {
+        Err("this device does not run the lifting generators".into())
     }
 
     /// The renderer's weights for the coming samples, by key relative to `upsampler.`.

@@ -5,9 +5,10 @@
 //! - Step: both phases in one graph ([`GagAvatar::train_forward`]), the release's loss
 //!   ([`TrainLosses`]), backward, then Adam. The renderer's noise is
 //!   [`Noise::Seeded`] from `(seed, step)`. With a [`RenderHalf`] (`--device gpu`) the
-//!   splatting, renderer and image terms of each sample run there, forward and backward, and
-//!   the Gaussians' gradients come back into one backward of the reconstruction (the same
-//!   gradients: see [`TrainState::set_render_half`]).
+//!   splatting, renderer and image terms of each sample (and the lifting generators, when it
+//!   runs them) run there, forward and backward, and the Gaussians' (or the expression
+//!   Gaussians' and `F_local`'s) gradients come back into one backward of the reconstruction
+//!   (the same gradients: see [`TrainState::set_render_half`]).
 //! - NaN guard: a step whose loss or any gradient is NaN or infinite changes nothing (no
 //!   update, the optimiser and its schedule stay where they were); it is reported, logged with
 //!   `"skipped"` in `metrics.jsonl` and counted.
@@ -36,7 +37,7 @@ use candle_nn::VarMap;
 use gagavatar_data::Dataset;
 use gagavatar_flame::{synthesize, FlameAsset, FlameModel, LoadOptions};
 use gagavatar_net::checkpoint::{read_weights, write_tensors_with_metadata, FLAME_METADATA_KEY};
-use gagavatar_net::model::{coarse_gaussians, GagAvatar};
+use gagavatar_net::model::{cameras, coarse_gaussians, GagAvatar};
 use gagavatar_net::style_unet::{noise_resolution, seeded_noise_from, Noise};
 use gagavatar_net::train::{export_weights, trainable_model};
 use gagavatar_net::ModelConfig;
@@ -55,7 +56,7 @@ use crate::losses::{LossInputs, TrainLosses};
 use crate::nearest::lifting_loss;
 use crate::pairs::{eval_pairs, mix, BatchTensors, Loader, Pair, PairSampler, SampleSource};
 use crate::perceptual::{PerceptualLoss, PERCEP_PREFIX};
-use crate::render_half::{RenderHalf, RenderSample};
+use crate::render_half::{LiftSample, LiftedGaussians, RenderHalf, RenderSample};
 use crate::run_error::{ckpt_err, config_err, io_err, RunError, RunResult};
 
 /// Salt of the renderer-noise stream.
@@ -170,6 +171,38 @@ impl std::fmt::Debug for TrainState {
     }
 }
 
+/// The values of the variables whose key starts with `prefix`, flattened, by key (without the
+/// prefix when `strip`).
+fn host_weights(
+    vars: &HashMap<String, Var>,
+    prefix: &str,
+    strip: bool,
+) -> RunResult<HashMap<String, Vec<f32>>> {
+    let mut out = HashMap::new();
+    for (k, v) in vars {
+        if let Some(rest) = k.strip_prefix(prefix) {
+            let t = v.as_tensor().flatten_all()?.to_dtype(DType::F32)?;
+            let key = if strip { rest } else { k.as_str() };
+            out.insert(key.to_string(), t.to_vec1::<f32>()?);
+        }
+    }
+    Ok(out)
+}
+
+/// The reconstruction's candle graph in a split step: all of it, with the Gaussians the
+/// device splats, or (lifting generators on the device) up to `F_local` and the expression
+/// Gaussians.
+enum Graph {
+    Whole {
+        avatar: gagavatar_net::model::Avatar,
+        g: gagavatar_net::model::CoarseGaussians,
+    },
+    Lift {
+        expr: gagavatar_net::gs_generator::GaussianAttributes,
+        trace: gagavatar_net::model::ReconstructTrace,
+    },
+}
+
 fn named_vars(varmap: &VarMap) -> RunResult<Vec<(String, Var)>> {
     let data = varmap
         .data()
@@ -227,14 +260,16 @@ impl TrainState {
     /// The renderer's trained weights, by key relative to `upsampler.`, flattened f32 (what a
     /// [`RenderHalf`] is built with and receives each step).
     pub fn renderer_weights(&self) -> RunResult<HashMap<String, Vec<f32>>> {
-        let mut out = HashMap::new();
-        for (k, v) in self.vars()? {
-            if let Some(key) = k.strip_prefix("upsampler.") {
-                let t = v.as_tensor().flatten_all()?.to_dtype(DType::F32)?;
-                out.insert(key.to_string(), t.to_vec1::<f32>()?);
-            }
-        }
-        Ok(out)
+        host_weights(&self.vars()?.into_iter().collect(), "upsampler.", true)
+    }
+
+    /// The lifting generators' weights by checkpoint key (what a [`RenderHalf`] that runs
+    /// them is built with and receives each step).
+    pub fn lifting_weights(&self) -> RunResult<HashMap<String, Vec<f32>>> {
+        let vars = self.vars()?.into_iter().collect();
+        let mut w = host_weights(&vars, "gs_generator_l0.", false)?;
+        w.extend(host_weights(&vars, "gs_generator_l1.", false)?);
+        Ok(w)
     }
 
     /// The perceptual networks' weights (by key without `percep_loss.`) and the term's factor,
@@ -257,10 +292,12 @@ impl TrainState {
     }
 
     /// The step's forward and backward with the rendering half on `rh`: reconstruction in the
-    /// candle graph, each sample's splatting, renderer and image terms (forward and backward)
-    /// on `rh`, the perceptual distance of the crops `rh` returns and the lifting term here;
-    /// then one backward of the reconstruction from the Gaussians' gradients. Every term is a
-    /// mean over the batch, so each sample's gradients count `1 / B`.
+    /// candle graph (without the lifting generators when `rh` runs them), each sample's
+    /// splatting, renderer and image terms (forward and backward) on `rh`, the perceptual
+    /// distance of the crops `rh` returns and the lifting term here; then one backward of the
+    /// reconstruction from the Gaussians' gradients (or, with the lifting generators on `rh`,
+    /// from the expression Gaussians' and `F_local`'s). Every term is a mean over the batch,
+    /// so each sample's gradients count `1 / B`.
     fn split_forward_backward(
         &self,
         rh: &mut dyn RenderHalf,
@@ -276,7 +313,7 @@ impl TrainState {
             err,
         };
         let cfg = &self.cfg.model;
-        let avatar = if cfg.backbone_frozen() && rh.has_backbone() {
+        let backbone = if cfg.backbone_frozen() && rh.has_backbone() {
             let images = batch
                 .source_image
                 .to_dtype(DType::F32)?
@@ -303,50 +340,110 @@ impl TrainState {
             let b = images.len();
             let [o0, o1, o2, o3] =
                 outs.map(|v| Tensor::from_vec(v, (b, g2, cfg.vit_dim), &Device::Cpu));
-            self.model.reconstruct_with_backbone(
-                &batch.source_image,
-                &batch.source_transform,
-                [o0?, o1?, o2?, o3?],
-            )?
+            Some([o0?, o1?, o2?, o3?])
         } else {
-            self.model
-                .reconstruct(&batch.source_image, &batch.source_transform)?
+            None
         };
-        timing.reconstruct_s = t_start.elapsed().as_secs_f64();
-        let g = coarse_gaussians(
-            cfg,
-            &avatar,
-            &batch.target_vertices,
-            &batch.target_transform,
-        )?;
-        let vars: HashMap<String, Var> = self.vars()?.into_iter().collect();
-        let weights = self.renderer_weights()?;
-        let t = Instant::now();
-        rh.set_renderer_weights(&weights).map_err(device)?;
-        timing.device_s += t.elapsed().as_secs_f64();
-
         let rows = |t: &Tensor| -> RunResult<Vec<Vec<f32>>> {
             Ok(t.flatten_from(1)?.to_dtype(DType::F32)?.to_vec2::<f32>()?)
         };
-        let attrs = [&g.means, &g.features, &g.opacities, &g.scales, &g.rotations];
-        let host: Vec<Vec<Vec<f32>>> = attrs.iter().map(|t| rows(t)).collect::<RunResult<_>>()?;
-        if host.iter().flatten().flatten().any(|v| !v.is_finite()) {
-            // As on the CPU, a blown-up reconstruction makes the loss NaN and the step is
-            // skipped (the device would refuse such Gaussians).
-            let nan = StepTerms {
-                loss: f64::NAN,
-                img: f64::NAN,
-                box_l1: f64::NAN,
-                percep: self.losses.percep().map(|_| f64::NAN),
-                point: self.losses.cfg.lifting.then_some(f64::NAN),
+        let (img_src, cam_src) = (&batch.source_image, &batch.source_transform);
+        // What the device splats, per sample: either every Gaussian (host rows of the candle
+        // graph's attributes), or the expression Gaussians here and the lifted ones from the
+        // device, sample by sample.
+        let graph = if rh.has_lifting() {
+            let (expr, trace) = self
+                .model
+                .reconstruct_features(img_src, cam_src, backbone)?;
+            Graph::Lift { expr, trace }
+        } else {
+            let avatar = match backbone {
+                Some(outs) => self
+                    .model
+                    .reconstruct_with_backbone(img_src, cam_src, outs)?,
+                None => self.model.reconstruct(img_src, cam_src)?,
             };
+            let g = coarse_gaussians(
+                cfg,
+                &avatar,
+                &batch.target_vertices,
+                &batch.target_transform,
+            )?;
+            Graph::Whole { avatar, g }
+        };
+        timing.reconstruct_s = t_start.elapsed().as_secs_f64();
+        let cameras = cameras(&batch.target_transform, cfg.image_size)?;
+        // The graph's tensors whose gradients the device returns, in RenderSample's order
+        // (means, features, opacities, scales, rotations); with the lifting generators on the
+        // device the means are the target's vertices (no gradient) and `F_local` follows.
+        let attrs: Vec<Option<&Tensor>> = match &graph {
+            Graph::Whole { g, .. } => {
+                [&g.means, &g.features, &g.opacities, &g.scales, &g.rotations]
+                    .into_iter()
+                    .map(Some)
+                    .collect()
+            }
+            Graph::Lift { expr, trace } => vec![
+                None,
+                Some(&expr.colors),
+                Some(&expr.opacities),
+                Some(&expr.scales),
+                Some(&expr.rotations),
+                Some(&trace.f_local),
+            ],
+        };
+        let vars: HashMap<String, Var> = self.vars()?.into_iter().collect();
+        let t = Instant::now();
+        rh.set_renderer_weights(&host_weights(&vars, "upsampler.", true)?)
+            .map_err(device)?;
+        if let Graph::Lift { .. } = graph {
+            let mut w = host_weights(&vars, "gs_generator_l0.", false)?;
+            w.extend(host_weights(&vars, "gs_generator_l1.", false)?);
+            rh.set_lifting_weights(&w).map_err(device)?;
+        }
+        timing.device_s += t.elapsed().as_secs_f64();
+
+        let host: Vec<Vec<Vec<f32>>> = match &graph {
+            Graph::Whole { g, .. } => {
+                [&g.means, &g.features, &g.opacities, &g.scales, &g.rotations]
+                    .iter()
+                    .map(|t| rows(t))
+                    .collect::<RunResult<_>>()?
+            }
+            Graph::Lift { expr, trace } => vec![
+                rows(&batch.target_vertices)?,
+                rows(&expr.colors)?,
+                rows(&expr.opacities)?,
+                rows(&expr.scales)?,
+                rows(&expr.rotations)?,
+                rows(&trace.f_local)?,
+            ],
+        };
+        let lift_inputs = match &graph {
+            Graph::Lift { trace, .. } => Some([
+                rows(&trace.dir_encoding)?,
+                rows(&trace.plane_points)?,
+                rows(&trace.plane_dir)?,
+            ]),
+            Graph::Whole { .. } => None,
+        };
+        let percep = self.losses.percep();
+        let nan = StepTerms {
+            loss: f64::NAN,
+            img: f64::NAN,
+            box_l1: f64::NAN,
+            percep: percep.map(|_| f64::NAN),
+            point: self.losses.cfg.lifting.then_some(f64::NAN),
+        };
+        // As on the CPU, a blown-up reconstruction makes the loss NaN and the step is skipped
+        // (the device would refuse such Gaussians).
+        if host.iter().flatten().flatten().any(|v| !v.is_finite()) {
             return Ok((nan, None, timing));
         }
         let targets = rows(&batch.target_image)?;
         let (b, _, h, w) = batch.target_image.dims4()?;
         let boxes = head_boxes(&batch.bbox, h, w)?;
         let box_size = self.losses.cfg.box_size;
-        let percep = self.losses.percep();
         if percep.is_none() && rh.has_percep() {
             return Err(device(
                 "computes a perceptual term the run has switched off".into(),
@@ -369,8 +466,46 @@ impl TrainState {
             .iter()
             .map(|a| vec![0f32; a.len() * a[0].len()])
             .collect();
-        let (mut img, mut box_l1, mut percep_sum) = (0.0, 0.0, 0.0);
+        let (mut img, mut box_l1, mut percep_sum, mut point_sum) = (0.0, 0.0, 0.0, 0.0);
         for i in 0..b {
+            // With the lifting generators on the device: this sample's lifted Gaussians after
+            // the expression Gaussians.
+            let lifted = match &lift_inputs {
+                Some([enc, points, dir]) => {
+                    let t = Instant::now();
+                    let l = rh
+                        .lift_forward(&LiftSample {
+                            f_local: &host[5][i],
+                            encoding: &enc[i],
+                            plane_points: &points[i],
+                            plane_dir: &dir[i],
+                        })
+                        .map_err(device)?;
+                    timing.device_s += t.elapsed().as_secs_f64();
+                    let all = [&l.means, &l.features, &l.opacities, &l.scales, &l.rotations];
+                    if all.iter().any(|v| v.iter().any(|x| !x.is_finite())) {
+                        return Ok((nan, None, timing));
+                    }
+                    Some(l)
+                }
+                None => None,
+            };
+            let joined: Option<[Vec<f32>; 5]> = lifted.as_ref().map(|l| {
+                let cat = |a: &[f32], b: &[f32]| [a, b].concat();
+                [
+                    cat(&host[0][i], &l.means),
+                    cat(&host[1][i], &l.features),
+                    cat(&host[2][i], &l.opacities),
+                    cat(&host[3][i], &l.scales),
+                    cat(&host[4][i], &l.rotations),
+                ]
+            });
+            let at = |k: usize| -> &[f32] {
+                match &joined {
+                    Some(j) => &j[k],
+                    None => &host[k][i],
+                }
+            };
             let noise = (0..n_noise)
                 .map(|j| {
                     let r = noise_resolution(j);
@@ -379,13 +514,13 @@ impl TrainState {
                 })
                 .collect::<RunResult<Vec<_>>>()?;
             let sample = RenderSample {
-                means: &host[0][i],
-                features: &host[1][i],
+                means: at(0),
+                features: at(1),
                 channels: cfg.color_dim,
-                opacities: &host[2][i],
-                scales: &host[3][i],
-                rotations: &host[4][i],
-                camera: &g.cameras[i],
+                opacities: at(2),
+                scales: at(3),
+                rotations: at(4),
+                camera: &cameras[i],
                 target: &targets[i],
                 head_box: boxes[i],
                 noise: &noise,
@@ -431,45 +566,96 @@ impl TrainState {
                 )
                 .map_err(device)?;
             timing.device_s += t.elapsed().as_secs_f64();
-            for (k, src) in [gr.means, gr.features, gr.opacities, gr.scales, gr.rotations]
+            let mut lifted_grads = LiftedGaussians::default();
+            let outs = [
+                &mut lifted_grads.means,
+                &mut lifted_grads.features,
+                &mut lifted_grads.opacities,
+                &mut lifted_grads.scales,
+                &mut lifted_grads.rotations,
+            ];
+            for ((k, src), out) in [gr.means, gr.features, gr.opacities, gr.scales, gr.rotations]
                 .iter()
                 .enumerate()
+                .zip(outs)
             {
-                let per = host[k][i].len();
-                if src.len() != per {
+                let total = at(k).len();
+                if src.len() != total {
                     return Err(device(
-                        format!("{} gradient values for {per} of attribute {k}", src.len()).into(),
+                        format!("{} gradient values for {total} of attribute {k}", src.len())
+                            .into(),
                     ));
                 }
+                // Graph values first (all of them, or the expression Gaussians'), then the
+                // lifted Gaussians' for the device's own backward.
+                let per = host[k][i].len();
                 for (a, v) in acc[k][i * per..(i + 1) * per].iter_mut().zip(src) {
                     *a = v * inv_b;
                 }
+                if lifted.is_some() {
+                    out.extend(src[per..].iter().map(|v| v * inv_b));
+                }
+            }
+            if let Some(l) = &lifted {
+                if self.losses.cfg.lifting {
+                    // The lifting term of this sample (the batch's is the samples' mean).
+                    let n = l.means.len() / 3;
+                    let xyz = Var::from_slice(&l.means, (1, n, 3), &Device::Cpu)?;
+                    let p = lifting_loss(xyz.as_tensor(), &batch.target_vertices.narrow(0, i, 1)?)?;
+                    point_sum += p.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+                    let gs = (p.to_dtype(DType::F32)? * f64::from(inv_b))?.backward()?;
+                    if let Some(g) = gs.get(xyz.as_tensor()) {
+                        let g = g.flatten_all()?.to_dtype(DType::F32)?.to_vec1::<f32>()?;
+                        for (a, v) in lifted_grads.means.iter_mut().zip(g) {
+                            *a += v;
+                        }
+                    }
+                }
+                let t = Instant::now();
+                let df = rh.lift_backward(&lifted_grads).map_err(device)?;
+                timing.device_s += t.elapsed().as_secs_f64();
+                let per = host[5][i].len();
+                if df.len() != per {
+                    return Err(device(
+                        format!("{} F_local gradient values, expected {per}", df.len()).into(),
+                    ));
+                }
+                acc[5][i * per..(i + 1) * per].copy_from_slice(&df);
             }
         }
         // The batch's mean, summed on the device.
         let t = Instant::now();
-        let renderer = rh.renderer_grads().map_err(device)?;
+        let mut device_grads = rh.renderer_grads().map_err(device)?;
+        for (k, _) in &mut device_grads {
+            *k = format!("upsampler.{k}");
+        }
+        if let Graph::Lift { .. } = graph {
+            device_grads.extend(rh.lifting_grads().map_err(device)?);
+        }
         timing.device_s += t.elapsed().as_secs_f64();
 
-        // The reconstruction's backward: d(sum_k <a_k, g_k>) / dθ carries the Gaussians'
-        // gradients g_k into the networks, the lifting term adds its own.
+        // The reconstruction's backward: d(sum_k <a_k, g_k>) / dθ carries the returned
+        // gradients g_k into the networks; the lifting term adds its own (here, unless the
+        // device's lifted Gaussians already carried it).
         let t_back = Instant::now();
         let mut surrogate = Tensor::zeros((), DType::F32, &Device::Cpu)?;
         for (t, gk) in attrs.iter().zip(acc) {
+            let Some(t) = t else { continue };
             let gk = Tensor::from_vec(gk, t.dims(), t.device())?.to_dtype(t.dtype())?;
             surrogate = (surrogate + (*t * gk)?.sum_all()?.to_dtype(DType::F32)?)?;
         }
-        let point = if self.losses.cfg.lifting {
-            let p = lifting_loss(&avatar.lifted_xyz, &batch.target_vertices)?;
-            let v = p.to_dtype(DType::F64)?.to_scalar::<f64>()?;
-            surrogate = (surrogate + p.to_dtype(DType::F32)?)?;
-            Some(v)
-        } else {
-            None
+        let point = match (&graph, self.losses.cfg.lifting) {
+            (_, false) => None,
+            (Graph::Lift { .. }, true) => Some(point_sum / b as f64),
+            (Graph::Whole { avatar, .. }, true) => {
+                let p = lifting_loss(&avatar.lifted_xyz, &batch.target_vertices)?;
+                let v = p.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+                surrogate = (surrogate + p.to_dtype(DType::F32)?)?;
+                Some(v)
+            }
         };
         let mut grads = surrogate.backward()?;
-        for (key, v) in renderer {
-            let name = format!("upsampler.{key}");
+        for (name, v) in device_grads {
             let var = vars.get(&name).ok_or_else(|| {
                 device(format!("a gradient of {name}, which the model does not train").into())
             })?;

@@ -4,11 +4,11 @@
 //! renderer's training forward and backward ([`renderer::GpuRendererGrad`]: U-Net, condition
 //! branches, StyleGAN2 decoder, sigmoid), checked against candle's autograd.
 //!
-//! `train --device gpu` runs [`render_half::GpuRenderHalf`]: each sample's splatting, renderer
-//! and image terms, forward and backward, behind `gagavatar_train`'s `RenderHalf`; the
-//! reconstruction networks' backward, the perceptual and lifting terms and Adam stay on the CPU
-//! for now (the split step's gradients are checked against the CPU step's in
-//! `render_half_tests`).
+//! `train --device gpu` runs [`render_half::GpuRenderHalf`]: each sample's splatting, renderer,
+//! image and perceptual terms and lifting generators ([`lift::GpuLiftGrad`]), forward and
+//! backward, behind `gagavatar_train`'s `RenderHalf`; the DPT head's and the expression
+//! generator's backward, the lifting term and Adam stay on the CPU for now (the split step's
+//! gradients are checked against the CPU step's in `render_half_tests`).
 //!
 //! They are recorded [`Step`](crate::kernel::Step)s like the forward's, and they reuse the
 //! forward's kernels where the mathematics allows: a stride-1 convolution's input gradient is
@@ -23,6 +23,7 @@ pub mod crop;
 pub mod decoder;
 pub mod image_loss;
 pub mod layers;
+pub mod lift;
 pub mod lifting;
 pub mod modconv;
 pub mod optim;
@@ -41,6 +42,9 @@ pub(crate) mod renderer_tests;
 
 #[cfg(test)]
 mod splat_tests;
+
+#[cfg(test)]
+mod lift_tests;
 
 #[cfg(test)]
 mod render_half_tests;

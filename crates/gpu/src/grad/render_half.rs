@@ -12,13 +12,14 @@ use gagavatar_net::model::GagAvatar;
 use gagavatar_net::style_unet::noise_resolution;
 use gagavatar_net::ModelConfig;
 use gagavatar_train::render_half::{
-    BackendError, RenderForward, RenderGrads, RenderHalf, RenderSample,
+    BackendError, LiftSample, LiftedGaussians, RenderForward, RenderGrads, RenderHalf, RenderSample,
 };
 
 use crate::device::Gpu;
 use crate::error::{input_err, Result};
 use crate::grad::crop::CropBox;
 use crate::grad::image_loss::GpuImageLosses;
+use crate::grad::lift::GpuLiftGrad;
 use crate::grad::perceptual::{CropBuffers, GpuPerceptual};
 use crate::grad::renderer::GpuRendererGrad;
 use crate::grad::splat::GpuSplatGrad;
@@ -139,6 +140,8 @@ pub struct GpuRenderHalf {
     percep: Option<GpuPerceptual>,
     /// The frozen backbone (the reconstruction's first stages), when asked for.
     backbone: Option<GpuReconstruct>,
+    /// The lifting generators, when asked for.
+    lift: Option<GpuLiftGrad>,
     /// The step's renderer gradients summed on the device (see [`Accumulated`]).
     acc: Accumulated,
     /// The splat and its backward, rebuilt when the Gaussian count changes.
@@ -192,6 +195,7 @@ impl GpuRenderHalf {
             crops,
             percep,
             backbone: None,
+            lift: None,
             acc,
             splat: None,
             pending: None,
@@ -209,6 +213,17 @@ impl GpuRenderHalf {
             ..self.tuning.clone()
         };
         self.backbone = Some(GpuReconstruct::new(self.gpu.clone(), &tuning, model)?);
+        Ok(self)
+    }
+
+    /// Also runs the lifting generators (`gs_generator_l0` / `l1`) with `weights` by
+    /// checkpoint key (every step uploads its own with [`RenderHalf::set_lifting_weights`]).
+    pub fn with_lifting(
+        mut self,
+        cfg: &ModelConfig,
+        weights: &HashMap<String, Vec<f32>>,
+    ) -> Result<Self> {
+        self.lift = Some(GpuLiftGrad::new(&self.gpu, &self.tuning, cfg, weights)?);
         Ok(self)
     }
 
@@ -395,6 +410,54 @@ impl RenderHalf for GpuRenderHalf {
         let image = Tensor::from_slice(image, (1, 3, s, s), &Device::Cpu)?;
         let transform = Tensor::from_slice(transform, (1, 3, 4), &Device::Cpu)?;
         Ok(r.backbone(&image, &transform)?)
+    }
+
+    fn has_lifting(&self) -> bool {
+        self.lift.is_some()
+    }
+
+    fn set_lifting_weights(
+        &mut self,
+        weights: &HashMap<String, Vec<f32>>,
+    ) -> std::result::Result<(), BackendError> {
+        let Some(l) = &mut self.lift else {
+            return Err("built without the lifting generators".into());
+        };
+        let value = |key: &str| weights.get(key).map(|v| v.as_slice());
+        Ok(l.set_weights(&self.gpu, &value)?)
+    }
+
+    fn lift_forward(
+        &mut self,
+        s: &LiftSample,
+    ) -> std::result::Result<LiftedGaussians, BackendError> {
+        let Some(l) = &mut self.lift else {
+            return Err("built without the lifting generators".into());
+        };
+        Ok(l.forward(
+            &self.gpu,
+            s.f_local,
+            s.encoding,
+            s.plane_points,
+            s.plane_dir,
+        )?)
+    }
+
+    fn lift_backward(
+        &mut self,
+        grads: &LiftedGaussians,
+    ) -> std::result::Result<Vec<f32>, BackendError> {
+        let Some(l) = &mut self.lift else {
+            return Err("built without the lifting generators".into());
+        };
+        Ok(l.backward(&self.gpu, grads)?)
+    }
+
+    fn lifting_grads(&mut self) -> std::result::Result<Vec<(String, Vec<f32>)>, BackendError> {
+        let Some(l) = &mut self.lift else {
+            return Err("built without the lifting generators".into());
+        };
+        Ok(l.read_grads(&self.gpu)?)
     }
 
     fn set_renderer_weights(

@@ -29,18 +29,28 @@ const BACKBONE_RTOL: f64 = 1e-5;
 /// lavapipe, against 5.6e-6 with the backbone's outputs bit-identical.
 const BACKBONE_STEP_RTOL: f64 = 5e-3;
 
+/// Gradients with the lifting generators on the GPU: the lifted Gaussians differ from the
+/// CPU's in the last bits (the same convolutions summed in another order), with the same
+/// effect on splatting as [`BACKBONE_STEP_RTOL`]'s.
+const LIFT_STEP_RTOL: f64 = 5e-3;
+
 /// The loss terms: sums of the same f32 values in another order.
 const TERM_RTOL: f64 = 1e-5;
 
 /// A CPU state and a state whose rendering half is on the GPU, with the perceptual term (on
 /// the GPU with `gpu_percep`, else on the CPU from the GPU's crops) or without.
 fn states(percep: bool, gpu_percep: bool) -> Option<(TrainState, TrainState)> {
-    states_with(percep, gpu_percep, false)
+    states_with(percep, gpu_percep, false, false)
 }
 
 /// [`states`]; `backbone`: the tiny model's backbone frozen (as the release's is) and run on
-/// the GPU.
-fn states_with(percep: bool, gpu_percep: bool, backbone: bool) -> Option<(TrainState, TrainState)> {
+/// the GPU; `lifting`: the lifting generators on the GPU.
+fn states_with(
+    percep: bool,
+    gpu_percep: bool,
+    backbone: bool,
+    lifting: bool,
+) -> Option<(TrainState, TrainState)> {
     gpu()?;
     let mut cfg = TrainConfig::preset("tiny").unwrap();
     if backbone {
@@ -77,6 +87,12 @@ fn states_with(percep: bool, gpu_percep: bool, backbone: bool) -> Option<(TrainS
     } else {
         rh
     };
+    let rh = if lifting {
+        rh.with_lifting(&cfg.model, &split.lifting_weights().unwrap())
+            .unwrap()
+    } else {
+        rh
+    };
     split.set_render_half(Box::new(rh)).unwrap();
     Some((cpu, split))
 }
@@ -107,7 +123,7 @@ fn split_step_with_a_cpu_perceptual_term_matches_the_cpu_step() {
 /// every trained parameter's gradient (the backbone has none).
 #[test]
 fn split_step_with_the_backbone_on_the_gpu_matches_the_cpu_step() {
-    let Some((cpu, split)) = states_with(false, false, true) else {
+    let Some((cpu, split)) = states_with(false, false, true, false) else {
         return;
     };
     // The backbone's outputs themselves: the same f32 operations in other orders.
@@ -143,6 +159,16 @@ fn split_step_with_the_backbone_on_the_gpu_matches_the_cpu_step() {
         );
     }
     compare_states_within(cpu, split, BACKBONE_STEP_RTOL);
+}
+
+/// The lifting generators on the GPU too (forward and backward, their lifted Gaussians and the
+/// gradient of `F_local` crossing to the CPU), with every term on.
+#[test]
+fn split_step_with_the_lifting_generators_on_the_gpu_matches_the_cpu_step() {
+    let Some((cpu, split)) = states_with(true, true, false, true) else {
+        return;
+    };
+    compare_states_within(cpu, split, LIFT_STEP_RTOL);
 }
 
 fn compare_gradients(gpu_percep: bool) {
