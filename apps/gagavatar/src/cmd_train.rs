@@ -380,9 +380,10 @@ pub fn run_train(a: TrainArgs) -> Result<()> {
         },
         false => a.device,
     };
-    if let Some(gpu) =
-        device.open_for_training_nth("training's splatting and renderer", local_rank())?
-    {
+    if let Some(gpu) = device.open_for_training_nth(
+        "training's splatting, renderer and lifting generators",
+        local_rank(),
+    )? {
         set_render_half(&mut run.state, gpu, &a.device)?;
     }
     if !lead {
@@ -564,7 +565,7 @@ pub fn run_bench(a: TrainBenchArgs) -> Result<()> {
     };
     let gpu = a
         .device
-        .open_for_training("the training step's splatting and renderer")?;
+        .open_for_training("the training step's splatting, renderer and lifting generators")?;
     let on = gpu.as_ref().map(|g| g.describe());
     let t = gagavatar_train::bench::time_steps_with(&cfg, percep, a.batch, a.runs, &dev, |st| {
         if let Some(g) = gpu.clone() {
@@ -580,7 +581,7 @@ pub fn run_bench(a: TrainBenchArgs) -> Result<()> {
     println!(
         "train step{}, model `{}` batch {}: median {:.1} ms ({:.2} steps/s); steps [{}] ms; \
          {} trained values{}, perceptual term {}; model built in {:.2} s; {}",
-        on.map(|d| format!(" (splatting and renderer on {d})"))
+        on.map(|d| format!(" (splatting, renderer and lifting generators on {d})"))
             .unwrap_or_default(),
         cfg.model.name,
         a.batch,
@@ -599,9 +600,9 @@ pub fn run_bench(a: TrainBenchArgs) -> Result<()> {
     );
     if let Some([rec, dev, host, back]) = t.split_medians() {
         println!(
-            "split step medians: reconstruction forward (CPU{}) {:.1} ms, device (splatting, \
-             renderer, image/box/perceptual terms, forward and backward) {:.1} ms, host {:.1} \
-             ms, reconstruction backward (CPU) {:.1} ms",
+            "split step medians: reconstruction forward (CPU{}) {:.1} ms, device (lifting \
+             generators, splatting, renderer, image/box/perceptual terms, forward and backward) \
+             {:.1} ms, host {:.1} ms, reconstruction backward (CPU) {:.1} ms",
             if cfg.model.backbone_frozen() {
                 ", backbone on the device"
             } else {

@@ -302,7 +302,7 @@ fn two_gpu_ranks_follow_one_cpu_process_and_resume_on_the_cpu() {
     let gpu = dir.join("gpu");
     let err = train(2, &strs(&args(&gpu, "gpu")));
     assert!(
-        err.contains("training's splatting and renderer on"),
+        err.contains("training's splatting, renderer and lifting generators on"),
         "{err}"
     );
     compare_steps("2 GPU ranks vs 1 CPU process", &cpu, &gpu, 2);
