@@ -189,6 +189,13 @@ fn host_weights(
     Ok(out)
 }
 
+/// Both lifting generators' values by checkpoint key.
+fn lifting_host_weights(vars: &HashMap<String, Var>) -> RunResult<HashMap<String, Vec<f32>>> {
+    let mut w = host_weights(vars, "gs_generator_l0.", false)?;
+    w.extend(host_weights(vars, "gs_generator_l1.", false)?);
+    Ok(w)
+}
+
 /// The reconstruction's candle graph in a split step: all of it, with the Gaussians the
 /// device splats, or (lifting generators on the device) up to `F_local` and the expression
 /// Gaussians.
@@ -266,10 +273,7 @@ impl TrainState {
     /// The lifting generators' weights by checkpoint key (what a [`RenderHalf`] that runs
     /// them is built with and receives each step).
     pub fn lifting_weights(&self) -> RunResult<HashMap<String, Vec<f32>>> {
-        let vars = self.vars()?.into_iter().collect();
-        let mut w = host_weights(&vars, "gs_generator_l0.", false)?;
-        w.extend(host_weights(&vars, "gs_generator_l1.", false)?);
-        Ok(w)
+        lifting_host_weights(&self.vars()?.into_iter().collect())
     }
 
     /// The perceptual networks' weights (by key without `percep_loss.`) and the term's factor,
@@ -397,9 +401,8 @@ impl TrainState {
         rh.set_renderer_weights(&host_weights(&vars, "upsampler.", true)?)
             .map_err(device)?;
         if let Graph::Lift { .. } = graph {
-            let mut w = host_weights(&vars, "gs_generator_l0.", false)?;
-            w.extend(host_weights(&vars, "gs_generator_l1.", false)?);
-            rh.set_lifting_weights(&w).map_err(device)?;
+            rh.set_lifting_weights(&lifting_host_weights(&vars)?)
+                .map_err(device)?;
         }
         timing.device_s += t.elapsed().as_secs_f64();
 

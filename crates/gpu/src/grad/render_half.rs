@@ -227,6 +227,14 @@ impl GpuRenderHalf {
         Ok(self)
     }
 
+    /// The device and the lifting generators, or the error of a half built without them.
+    fn lifting(&mut self) -> std::result::Result<(&Gpu, &mut GpuLiftGrad), BackendError> {
+        match &mut self.lift {
+            Some(l) => Ok((&self.gpu, l)),
+            None => Err("built without the lifting generators".into()),
+        }
+    }
+
     fn forward_sample(
         &mut self,
         s: &RenderSample,
@@ -420,44 +428,30 @@ impl RenderHalf for GpuRenderHalf {
         &mut self,
         weights: &HashMap<String, Vec<f32>>,
     ) -> std::result::Result<(), BackendError> {
-        let Some(l) = &mut self.lift else {
-            return Err("built without the lifting generators".into());
-        };
+        let (gpu, l) = self.lifting()?;
         let value = |key: &str| weights.get(key).map(|v| v.as_slice());
-        Ok(l.set_weights(&self.gpu, &value)?)
+        Ok(l.set_weights(gpu, &value)?)
     }
 
     fn lift_forward(
         &mut self,
         s: &LiftSample,
     ) -> std::result::Result<LiftedGaussians, BackendError> {
-        let Some(l) = &mut self.lift else {
-            return Err("built without the lifting generators".into());
-        };
-        Ok(l.forward(
-            &self.gpu,
-            s.f_local,
-            s.encoding,
-            s.plane_points,
-            s.plane_dir,
-        )?)
+        let (gpu, l) = self.lifting()?;
+        Ok(l.forward(gpu, s.f_local, s.encoding, s.plane_points, s.plane_dir)?)
     }
 
     fn lift_backward(
         &mut self,
         grads: &LiftedGaussians,
     ) -> std::result::Result<Vec<f32>, BackendError> {
-        let Some(l) = &mut self.lift else {
-            return Err("built without the lifting generators".into());
-        };
-        Ok(l.backward(&self.gpu, grads)?)
+        let (gpu, l) = self.lifting()?;
+        Ok(l.backward(gpu, grads)?)
     }
 
     fn lifting_grads(&mut self) -> std::result::Result<Vec<(String, Vec<f32>)>, BackendError> {
-        let Some(l) = &mut self.lift else {
-            return Err("built without the lifting generators".into());
-        };
-        Ok(l.read_grads(&self.gpu)?)
+        let (gpu, l) = self.lifting()?;
+        Ok(l.read_grads(gpu)?)
     }
 
     fn set_renderer_weights(
