@@ -21,6 +21,7 @@
 pub mod conv;
 pub mod crop;
 pub mod decoder;
+pub mod dpt;
 pub mod image_loss;
 pub mod layers;
 pub mod lift;
@@ -45,6 +46,9 @@ mod splat_tests;
 
 #[cfg(test)]
 mod lift_tests;
+
+#[cfg(test)]
+mod dpt_tests;
 
 #[cfg(test)]
 mod render_half_tests;
