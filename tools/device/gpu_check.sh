@@ -15,7 +15,9 @@ set -u
 # FRAMES, SWEEP_FRAMES, REENACT_FRAMES, RECONSTRUCT_RUNS, GRAD_RUNS, PRESET and TESTS (a
 # test-name filter) shrink the run for a dry run on lavapipe; SKIP_TESTS=1 leaves the parity
 # tests out. STEPS (drive reconstruct grad splat train reenact tests sweep; SPLAT_PLANE shrinks
-# the splat scene; TRAIN_BATCH, TRAIN_RUNS size train-bench), DRIVE_RUNS (small large f16),
+# the splat scene; TRAIN_BATCH, TRAIN_RUNS size train-bench; TRAIN_FREEZE=1 freezes a small
+# preset's backbone, so that a dry run takes the release's path: backbone and DPT head on the
+# GPU), DRIVE_RUNS (small large f16),
 # RECONSTRUCT_PRECISIONS and REENACT_PRECISIONS (f16 f32) pick what a later call redoes.
 FRAMES=${FRAMES:-300}
 SWEEP_FRAMES=${SWEEP_FRAMES:-40}
@@ -130,8 +132,14 @@ grep -E "^splat|^error" "$OUT/bench_splat.txt" >> "$OUT/summary.txt"
 
 want train && {
 log "train-bench (issue 31: train --device gpu's split step against the CPU step), $PRESET seeded weights and perceptual networks, batch ${TRAIN_BATCH:-1}, ${TRAIN_RUNS:-2} steps"
+TRAIN_CFG=(--preset "$PRESET")
+if [ "${TRAIN_FREEZE:-0}" = 1 ]; then
+    sed 's/^\[model\]$/[model]\nfreeze_backbone = true/' "crates/train/configs/$PRESET.toml" \
+        > "$BIN/train_frozen.toml"
+    TRAIN_CFG=(--config "$BIN/train_frozen.toml")
+fi
 for device in gpu cpu; do
-    timeout 200 "$BIN/gagavatar" train-bench --preset "$PRESET" --batch "${TRAIN_BATCH:-1}" \
+    timeout 200 "$BIN/gagavatar" train-bench "${TRAIN_CFG[@]}" --batch "${TRAIN_BATCH:-1}" \
         --runs "${TRAIN_RUNS:-2}" --seeded-percep --device "$device" \
         > "$OUT/train_bench_$device.txt" 2>&1
     echo "exit $? (train-bench --device $device)" >> "$OUT/summary.txt"

@@ -280,6 +280,15 @@ fn check_device(device: &DeviceArgs, cfg: &TrainConfig) -> Result<()> {
     Ok(())
 }
 
+/// What `train --device gpu` runs on the GPU for `cfg` (see [`set_render_half`]).
+fn gpu_parts(cfg: &gagavatar_net::ModelConfig) -> &'static str {
+    if cfg.backbone_frozen() {
+        "backbone, DPT head, lifting generators, splatting and renderer"
+    } else {
+        "splatting, renderer and lifting generators"
+    }
+}
+
 /// Moves the rendering half of `state`'s steps onto `gpu`.
 fn set_render_half(
     state: &mut TrainState,
@@ -318,6 +327,13 @@ fn set_render_half(
     let rh = rh
         .with_lifting(&state.cfg.model, &state.lifting_weights()?)
         .map_err(err)?;
+    // With the backbone there, the DPT head too: F_local and its gradient stay on the device.
+    let rh = if state.cfg.model.backbone_frozen() {
+        rh.with_dpt(&state.cfg.model, &state.dpt_weights()?)
+            .map_err(err)?
+    } else {
+        rh
+    };
     state.set_render_half(Box::new(rh))
 }
 
@@ -380,10 +396,8 @@ pub fn run_train(a: TrainArgs) -> Result<()> {
         },
         false => a.device,
     };
-    if let Some(gpu) = device.open_for_training_nth(
-        "training's splatting, renderer and lifting generators",
-        local_rank(),
-    )? {
+    let what = format!("training's {}", gpu_parts(&run.config().model));
+    if let Some(gpu) = device.open_for_training_nth(&what, local_rank())? {
         set_render_half(&mut run.state, gpu, &a.device)?;
     }
     if !lead {
@@ -565,7 +579,7 @@ pub fn run_bench(a: TrainBenchArgs) -> Result<()> {
     };
     let gpu = a
         .device
-        .open_for_training("the training step's splatting, renderer and lifting generators")?;
+        .open_for_training(&format!("the training step's {}", gpu_parts(&cfg.model)))?;
     let on = gpu.as_ref().map(|g| g.describe());
     let t = gagavatar_train::bench::time_steps_with(&cfg, percep, a.batch, a.runs, &dev, |st| {
         if let Some(g) = gpu.clone() {
@@ -581,7 +595,7 @@ pub fn run_bench(a: TrainBenchArgs) -> Result<()> {
     println!(
         "train step{}, model `{}` batch {}: median {:.1} ms ({:.2} steps/s); steps [{}] ms; \
          {} trained values{}, perceptual term {}; model built in {:.2} s; {}",
-        on.map(|d| format!(" (splatting, renderer and lifting generators on {d})"))
+        on.map(|d| format!(" ({} on {d})", gpu_parts(&cfg.model)))
             .unwrap_or_default(),
         cfg.model.name,
         a.batch,
@@ -600,14 +614,15 @@ pub fn run_bench(a: TrainBenchArgs) -> Result<()> {
     );
     if let Some([rec, dev, host, back]) = t.split_medians() {
         println!(
-            "split step medians: reconstruction forward (CPU{}) {:.1} ms, device (lifting \
-             generators, splatting, renderer, image/box/perceptual terms, forward and backward) \
-             {:.1} ms, host {:.1} ms, reconstruction backward (CPU) {:.1} ms",
+            "split step medians: reconstruction forward (CPU{}) {:.1} ms, device ({}, \
+             image/box/perceptual terms, forward and backward) {:.1} ms, host {:.1} ms, \
+             reconstruction backward (CPU) {:.1} ms",
             if cfg.model.backbone_frozen() {
-                ", backbone on the device"
+                ": the expression generator; backbone forward on the device"
             } else {
                 ""
             },
+            gpu_parts(&cfg.model),
             rec * 1e3,
             dev * 1e3,
             host * 1e3,

@@ -268,6 +268,44 @@ impl Gpu {
         Ok(bytemuck::pod_collect_to_vec(&bytes))
     }
 
+    /// The first `n` floats of each buffer, copied into one staging buffer and mapped once
+    /// (one wait for the device instead of one per buffer).
+    pub fn read_f32_many(&self, srcs: &[(&wgpu::Buffer, usize)]) -> Result<Vec<Vec<f32>>> {
+        let total: u64 = srcs.iter().map(|(_, n)| 4 * *n as u64).sum();
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("read back"),
+            size: total.max(4),
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+        let mut at = 0;
+        for (src, n) in srcs {
+            let bytes = 4 * *n as u64;
+            if bytes > src.size() {
+                return Err(GpuError::Device(format!(
+                    "reading {bytes} bytes of a {}-byte buffer",
+                    src.size()
+                )));
+            }
+            if bytes > 0 {
+                enc.copy_buffer_to_buffer(src, 0, &staging, at, bytes);
+            }
+            at += bytes;
+        }
+        self.queue.submit([enc.finish()]);
+        let all: Vec<f32> = bytemuck::pod_collect_to_vec(&map_read(self, &staging, total.max(4))?);
+        let mut out = Vec::with_capacity(srcs.len());
+        let mut first = 0;
+        for (_, n) in srcs {
+            out.push(all[first..first + n].to_vec());
+            first += n;
+        }
+        Ok(out)
+    }
+
     /// [`Gpu::read_back`] as `u32` values.
     pub fn read_u32(&self, src: &wgpu::Buffer, n: usize) -> Result<Vec<u32>> {
         let bytes = self.read_back(src, 4 * n as u64)?;

@@ -219,7 +219,7 @@ impl GagAvatar {
         backbone: Option<[Tensor; 4]>,
         done: &mut dyn FnMut(&'static str),
     ) -> Result<(Avatar, ReconstructTrace)> {
-        let (expr, trace) = self.features_from(image, transform, backbone, done)?;
+        let (expr, trace) = self.features_from(image, transform, backbone, true, done)?;
         let [_, _, _, _, _, s_l0, s_l1] = Self::STAGES;
         let (f_local, enc) = (&trace.f_local, &trace.dir_encoding);
         let l0 = self.gen_l0.forward(f_local, enc)?;
@@ -271,7 +271,25 @@ impl GagAvatar {
                     .into(),
             ));
         }
-        self.features_from(image, transform, backbone, &mut |_| {})
+        self.features_from(image, transform, backbone, true, &mut |_| {})
+    }
+
+    /// [`Self::reconstruct_features`] without the DPT head, for a trainer that runs the head
+    /// elsewhere too (it reads the trace's `dino` and `input_518`): the trace's `f_local` is
+    /// empty, `[B, 0, S, S]`. Frozen backbones only, their outputs given.
+    pub fn reconstruct_expression(
+        &self,
+        image: &Tensor,
+        transform: &Tensor,
+        backbone: [Tensor; 4],
+    ) -> Result<(GaussianAttributes, ReconstructTrace)> {
+        if !self.cfg.backbone_frozen() {
+            return Err(NetError::Config(
+                "a DPT head run elsewhere needs a frozen backbone (its outputs carry no gradient)"
+                    .into(),
+            ));
+        }
+        self.features_from(image, transform, Some(backbone), false, &mut |_| {})
     }
 
     fn features_from(
@@ -279,6 +297,7 @@ impl GagAvatar {
         image: &Tensor,
         transform: &Tensor,
         backbone: Option<[Tensor; 4]>,
+        with_dpt: bool,
         done: &mut dyn FnMut(&'static str),
     ) -> Result<(GaussianAttributes, ReconstructTrace)> {
         let size = self.cfg.image_size;
@@ -321,10 +340,14 @@ impl GagAvatar {
         };
         let f_id = crate::dino::f_id(&dino[3])?;
         done(s_dino);
-        let f_local = self.dpt.forward(&dino, &input_518)?;
+        let s = self.cfg.plane_size();
+        let f_local = if with_dpt {
+            self.dpt.forward(&dino, &input_518)?
+        } else {
+            Tensor::zeros((b, 0, s, s), dtype, image.device())?
+        };
         done(s_dpt);
 
-        let s = self.cfg.plane_size();
         let (plane_points, plane_dir) = point_plane(&transform, s, FOCAL)?;
         let enc = dir_encoding(&plane_dir)?;
         done(s_plane);

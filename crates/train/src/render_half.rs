@@ -10,7 +10,9 @@
 //! generators (`gs_generator_l0` / `l1`, four convolutions over `F_local` at plane size each):
 //! forward per sample to the lifted Gaussians, backward from their gradients to the gradient
 //! of `F_local` (which the trainer carries into the DPT head) and the generators' weight
-//! gradients, summed over the step on the device.
+//! gradients, summed over the step on the device. With the backbone there, it may run the DPT
+//! head as well: `F_local` then never leaves the device, and only the head's weight gradients
+//! come back.
 //!
 //! The split is where the cost is at release size (the renderer and the 512x512 splatting), and
 //! it keeps checkpoints, the optimiser and the data-parallel averaging exactly as on the CPU,
@@ -72,8 +74,9 @@ pub struct RenderGrads {
 /// One sample's inputs of the lifting generators (host values, row-major, f32).
 #[derive(Debug, Clone, Copy)]
 pub struct LiftSample<'a> {
-    /// `[F, S, S]`: the DPT head's local features.
-    pub f_local: &'a [f32],
+    /// `[F, S, S]`: the DPT head's local features; `None` when the backend's own DPT head
+    /// computed them ([`RenderHalf::dpt_forward`]).
+    pub f_local: Option<&'a [f32]>,
     /// `[27]`: the view direction's encoding.
     pub encoding: &'a [f32],
     /// `[S * S, 3]`: the plane's points.
@@ -147,7 +150,8 @@ pub trait RenderHalf {
     /// The backward of the last [`RenderHalf::lift_forward`] from the gradients of its
     /// Gaussians (already weighted as the sample's share of the step's loss): returns the
     /// gradient of `f_local` `[F, S, S]` and adds the generators' weight gradients to the
-    /// step's sums on the device.
+    /// step's sums on the device. When the backend's DPT head computed `f_local`, that
+    /// gradient goes on into the head's backward there and the returned one is empty.
     fn lift_backward(&mut self, _grads: &LiftedGaussians) -> Result<Vec<f32>, BackendError> {
         Err("this device does not run the lifting generators".into())
     }
@@ -156,6 +160,35 @@ pub trait RenderHalf {
     /// by checkpoint key, flattened in the checkpoint's layout.
     fn lifting_grads(&mut self) -> Result<Vec<(String, Vec<f32>)>, BackendError> {
         Err("this device does not run the lifting generators".into())
+    }
+
+    /// Whether the backend runs the DPT head ([`RenderHalf::dpt_forward`]); it needs the
+    /// backbone and the lifting generators here too.
+    fn has_dpt(&self) -> bool {
+        false
+    }
+
+    /// The DPT head's weights for the coming samples, by checkpoint key
+    /// (`base_model.projects.0.weight`, ...); their gradient sums start again.
+    fn set_dpt_weights(
+        &mut self,
+        _weights: &HashMap<String, Vec<f32>>,
+    ) -> Result<(), BackendError> {
+        Err("this device does not run the DPT head".into())
+    }
+
+    /// One sample's DPT head, from the backbone's four outputs (`[grid^2, vit_dim]` each, as
+    /// [`RenderHalf::backbone`] returns them) and the normalised DINO input `[3, D, D]`:
+    /// `F_local` stays on the device for the next [`RenderHalf::lift_forward`] (given no
+    /// `f_local`), and its gradient for the head's backward.
+    fn dpt_forward(&mut self, _tokens: [&[f32]; 4], _image: &[f32]) -> Result<(), BackendError> {
+        Err("this device does not run the DPT head".into())
+    }
+
+    /// The DPT head's weight gradients summed since [`RenderHalf::set_dpt_weights`], by
+    /// checkpoint key, flattened in the checkpoint's layout.
+    fn dpt_grads(&mut self) -> Result<Vec<(String, Vec<f32>)>, BackendError> {
+        Err("this device does not run the DPT head".into())
     }
 
     /// The renderer's weights for the coming samples, by key relative to `upsampler.`.

@@ -5,10 +5,11 @@
 //! - Step: both phases in one graph ([`GagAvatar::train_forward`]), the release's loss
 //!   ([`TrainLosses`]), backward, then Adam. The renderer's noise is
 //!   [`Noise::Seeded`] from `(seed, step)`. With a [`RenderHalf`] (`--device gpu`) the
-//!   splatting, renderer and image terms of each sample (and the lifting generators, when it
-//!   runs them) run there, forward and backward, and the Gaussians' (or the expression
-//!   Gaussians' and `F_local`'s) gradients come back into one backward of the reconstruction
-//!   (the same gradients: see [`TrainState::set_render_half`]).
+//!   splatting, renderer and image terms of each sample (and the lifting generators and the
+//!   DPT head, when it runs them) run there, forward and backward, and the Gaussians' (or the
+//!   expression Gaussians' and `F_local`'s, or the expression Gaussians' alone) gradients come
+//!   back into one backward of the reconstruction (the same gradients: see
+//!   [`TrainState::set_render_half`]).
 //! - NaN guard: a step whose loss or any gradient is NaN or infinite changes nothing (no
 //!   update, the optimiser and its schedule stay where they were); it is reported, logged with
 //!   `"skipped"` in `metrics.jsonl` and counted.
@@ -196,9 +197,16 @@ fn lifting_host_weights(vars: &HashMap<String, Var>) -> RunResult<HashMap<String
     Ok(w)
 }
 
+/// The DPT head's values by checkpoint key (`base_model.` outside the backbone).
+fn dpt_host_weights(vars: &HashMap<String, Var>) -> RunResult<HashMap<String, Vec<f32>>> {
+    let mut w = host_weights(vars, "base_model.", false)?;
+    w.retain(|k, _| !k.starts_with("base_model.dino_model."));
+    Ok(w)
+}
+
 /// The reconstruction's candle graph in a split step: all of it, with the Gaussians the
 /// device splats, or (lifting generators on the device) up to `F_local` and the expression
-/// Gaussians.
+/// Gaussians, or (the DPT head there too) the expression Gaussians alone.
 enum Graph {
     Whole {
         avatar: gagavatar_net::model::Avatar,
@@ -276,6 +284,12 @@ impl TrainState {
         lifting_host_weights(&self.vars()?.into_iter().collect())
     }
 
+    /// The DPT head's values by checkpoint key (`base_model.projects.0.weight`, ...): what a
+    /// [`RenderHalf`] that runs the head is built with.
+    pub fn dpt_weights(&self) -> RunResult<HashMap<String, Vec<f32>>> {
+        dpt_host_weights(&self.vars()?.into_iter().collect())
+    }
+
     /// The perceptual networks' weights (by key without `percep_loss.`) and the term's factor,
     /// when the term is on: what a [`RenderHalf`] that computes the term is built with.
     pub fn percep_weights(&self) -> RunResult<Option<PercepWeights>> {
@@ -300,8 +314,9 @@ impl TrainState {
     /// splatting, renderer and image terms (forward and backward) on `rh`, the perceptual
     /// distance of the crops `rh` returns and the lifting term here; then one backward of the
     /// reconstruction from the Gaussians' gradients (or, with the lifting generators on `rh`,
-    /// from the expression Gaussians' and `F_local`'s). Every term is a mean over the batch,
-    /// so each sample's gradients count `1 / B`.
+    /// from the expression Gaussians' and `F_local`'s; with the DPT head there too, from the
+    /// expression Gaussians' alone, the head's weight gradients coming from `rh`). Every term
+    /// is a mean over the batch, so each sample's gradients count `1 / B`.
     fn split_forward_backward(
         &self,
         rh: &mut dyn RenderHalf,
@@ -317,6 +332,7 @@ impl TrainState {
             err,
         };
         let cfg = &self.cfg.model;
+        let mut host_tokens: Option<[Vec<f32>; 4]> = None;
         let backbone = if cfg.backbone_frozen() && rh.has_backbone() {
             let images = batch
                 .source_image
@@ -342,6 +358,10 @@ impl TrainState {
                 }
             }
             let b = images.len();
+            // The device's DPT head reads them again, sample by sample.
+            if rh.has_dpt() && rh.has_lifting() {
+                host_tokens = Some(outs.clone());
+            }
             let [o0, o1, o2, o3] =
                 outs.map(|v| Tensor::from_vec(v, (b, g2, cfg.vit_dim), &Device::Cpu));
             Some([o0?, o1?, o2?, o3?])
@@ -355,10 +375,17 @@ impl TrainState {
         // What the device splats, per sample: either every Gaussian (host rows of the candle
         // graph's attributes), or the expression Gaussians here and the lifted ones from the
         // device, sample by sample.
+        // With the DPT head on the device too, the graph stops at the expression Gaussians.
+        let dpt_here = host_tokens.is_some();
         let graph = if rh.has_lifting() {
-            let (expr, trace) = self
-                .model
-                .reconstruct_features(img_src, cam_src, backbone)?;
+            let (expr, trace) = match backbone {
+                Some(outs) if dpt_here => {
+                    self.model.reconstruct_expression(img_src, cam_src, outs)?
+                }
+                backbone => self
+                    .model
+                    .reconstruct_features(img_src, cam_src, backbone)?,
+            };
             Graph::Lift { expr, trace }
         } else {
             let avatar = match backbone {
@@ -393,7 +420,7 @@ impl TrainState {
                 Some(&expr.opacities),
                 Some(&expr.scales),
                 Some(&expr.rotations),
-                Some(&trace.f_local),
+                (!dpt_here).then_some(&trace.f_local),
             ],
         };
         let vars: HashMap<String, Var> = self.vars()?.into_iter().collect();
@@ -403,6 +430,10 @@ impl TrainState {
         if let Graph::Lift { .. } = graph {
             rh.set_lifting_weights(&lifting_host_weights(&vars)?)
                 .map_err(device)?;
+            if dpt_here {
+                rh.set_dpt_weights(&dpt_host_weights(&vars)?)
+                    .map_err(device)?;
+            }
         }
         timing.device_s += t.elapsed().as_secs_f64();
 
@@ -429,6 +460,11 @@ impl TrainState {
                 rows(&trace.plane_dir)?,
             ]),
             Graph::Whole { .. } => None,
+        };
+        // The DPT head's other input, per sample, when it runs on the device.
+        let dino_inputs = match (&graph, dpt_here) {
+            (Graph::Lift { trace, .. }, true) => Some(rows(&trace.input_518)?),
+            _ => None,
         };
         let percep = self.losses.percep();
         let nan = StepTerms {
@@ -476,9 +512,14 @@ impl TrainState {
             let lifted = match &lift_inputs {
                 Some([enc, points, dir]) => {
                     let t = Instant::now();
+                    if let (Some(tokens), Some(images)) = (&host_tokens, &dino_inputs) {
+                        let per = tokens[0].len() / b;
+                        let sample = tokens.each_ref().map(|t| &t[i * per..(i + 1) * per]);
+                        rh.dpt_forward(sample, &images[i]).map_err(device)?;
+                    }
                     let l = rh
                         .lift_forward(&LiftSample {
-                            f_local: &host[5][i],
+                            f_local: (!dpt_here).then_some(host[5][i].as_slice()),
                             encoding: &enc[i],
                             plane_points: &points[i],
                             plane_dir: &dir[i],
@@ -634,6 +675,9 @@ impl TrainState {
         }
         if let Graph::Lift { .. } = graph {
             device_grads.extend(rh.lifting_grads().map_err(device)?);
+            if dpt_here {
+                device_grads.extend(rh.dpt_grads().map_err(device)?);
+            }
         }
         timing.device_s += t.elapsed().as_secs_f64();
 

@@ -67,6 +67,15 @@ pub struct GpuLiftGrad {
     samples: usize,
 }
 
+/// Where a forward's `F_local` `[F, S, S]` comes from.
+#[derive(Debug, Clone, Copy)]
+pub enum LiftInput<'a> {
+    /// Host values.
+    Host(&'a [f32]),
+    /// The first `F S^2` floats of a device buffer (the DPT head's output on this device).
+    Device(&'a wgpu::Buffer),
+}
+
 /// Attribute widths in [`GpuLiftGrad::outs`]' order, for `c` colour channels.
 fn widths(c: usize) -> [usize; 5] {
     [c, 1, 3, 4, 3]
@@ -349,15 +358,21 @@ impl GpuLiftGrad {
     pub fn forward(
         &mut self,
         gpu: &Gpu,
-        f_local: &[f32],
+        f_local: LiftInput,
         encoding: &[f32],
         points: &[f32],
         dir: &[f32],
     ) -> Result<LiftedGaussians> {
         let m = self.s * self.s;
         let e = DIR_ENCODING_DIM;
+        let f_bytes = 4 * (self.f * m) as u64;
+        let f_len = match f_local {
+            LiftInput::Host(v) => v.len(),
+            LiftInput::Device(b) if b.size() >= f_bytes => self.f * m,
+            LiftInput::Device(b) => (b.size() / 4) as usize,
+        };
         for (what, got, want) in [
-            ("F_local", f_local.len(), self.f * m),
+            ("F_local", f_len, self.f * m),
             ("direction encoding", encoding.len(), e),
             ("plane points", points.len(), 3 * m),
             ("view direction", dir.len(), 3),
@@ -369,32 +384,61 @@ impl GpuLiftGrad {
                 ));
             }
         }
-        let mut x = Vec::with_capacity((self.f + e) * m);
-        x.extend_from_slice(f_local);
+        let mut x = Vec::with_capacity(e * m);
         for &v in encoding {
             x.extend(std::iter::repeat_n(v, m));
         }
         gpu.queue
-            .write_buffer(&self.input, 0, bytemuck::cast_slice(&x));
+            .write_buffer(&self.input, f_bytes, bytemuck::cast_slice(&x));
+        match f_local {
+            LiftInput::Host(v) => gpu
+                .queue
+                .write_buffer(&self.input, 0, bytemuck::cast_slice(v)),
+            LiftInput::Device(b) => {
+                let mut enc = gpu
+                    .device
+                    .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                        label: Some("F_local into the lifting input"),
+                    });
+                enc.copy_buffer_to_buffer(b, 0, &self.input, 0, f_bytes);
+                gpu.queue.submit([enc.finish()]);
+            }
+        }
         let plane = [points, dir].concat();
         gpu.queue
             .write_buffer(&self.plane, 0, bytemuck::cast_slice(&plane));
         gpu.submit(&self.forward);
         let n = self.planes * m;
-        let [f, o, s, r, mm] = &self.outs;
         let w = widths(self.c);
+        let srcs: Vec<(&wgpu::Buffer, usize)> =
+            self.outs.iter().zip(w).map(|(b, k)| (b, n * k)).collect();
+        let mut read = gpu.read_f32_many(&srcs)?.into_iter();
+        let mut next = || read.next().unwrap_or_default();
         Ok(LiftedGaussians {
-            features: gpu.read_f32(f, n * w[0])?,
-            opacities: gpu.read_f32(o, n * w[1])?,
-            scales: gpu.read_f32(s, n * w[2])?,
-            rotations: gpu.read_f32(r, n * w[3])?,
-            means: gpu.read_f32(mm, n * w[4])?,
+            features: next(),
+            opacities: next(),
+            scales: next(),
+            rotations: next(),
+            means: next(),
         })
     }
 
     /// The backward of the last forward from its Gaussians' gradients: returns the gradient of
     /// `F_local` `[F, S, S]`; the weight gradients are added to the step's sums.
     pub fn backward(&mut self, gpu: &Gpu, grads: &LiftedGaussians) -> Result<Vec<f32>> {
+        self.backward_on_device(gpu, grads)?;
+        gpu.read_f32(&self.grad_input, self.f * self.s * self.s)
+    }
+
+    /// The first `F S^2` floats of this buffer: the gradient of `F_local` after
+    /// [`GpuLiftGrad::backward_on_device`].
+    pub fn grad_f_local(&self) -> &wgpu::Buffer {
+        &self.grad_input
+    }
+
+    /// [`GpuLiftGrad::backward`] with the gradient of `F_local` left on the device
+    /// ([`GpuLiftGrad::grad_f_local`]).
+    pub fn backward_on_device(&mut self, gpu: &Gpu, grads: &LiftedGaussians) -> Result<()> {
         let n = self.planes * self.s * self.s;
         let w = widths(self.c);
         let given = [
@@ -426,7 +470,7 @@ impl GpuLiftGrad {
         }
         gpu.submit(&self.backward);
         self.samples += 1;
-        gpu.read_f32(&self.grad_input, self.f * self.s * self.s)
+        Ok(())
     }
 
     /// Every weight's gradient summed over the backward passes since the weights were set,

@@ -10,7 +10,7 @@ use gagavatar_net::gs_generator::ConvGsGenerator;
 use gagavatar_train::bench::synthetic_batch;
 use gagavatar_train::{LiftedGaussians, TrainConfig, TrainState};
 
-use super::lift::GpuLiftGrad;
+use super::lift::{GpuLiftGrad, LiftInput};
 use crate::testutil::{assert_close_rel, gpu};
 use crate::Tuning;
 
@@ -140,7 +140,7 @@ fn check_against_candle(cfg: TrainConfig) {
     let got = lift
         .forward(
             g,
-            &flat(&c.f_local),
+            LiftInput::Host(&flat(&c.f_local)),
             &flat(&c.enc),
             &flat(&c.points),
             &flat(&c.dir),
@@ -266,7 +266,7 @@ fn lifting_backward_matches_f64_central_differences() {
     let f0 = f64t(&c.f_local);
     lift.forward(
         g,
-        &flat(&c.f_local),
+        LiftInput::Host(&flat(&c.f_local)),
         &flat(&c.enc),
         &flat(&c.points),
         &flat(&c.dir),

@@ -18,8 +18,9 @@ use gagavatar_train::render_half::{
 use crate::device::Gpu;
 use crate::error::{input_err, Result};
 use crate::grad::crop::CropBox;
+use crate::grad::dpt::GpuDptGrad;
 use crate::grad::image_loss::GpuImageLosses;
-use crate::grad::lift::GpuLiftGrad;
+use crate::grad::lift::{GpuLiftGrad, LiftInput};
 use crate::grad::perceptual::{CropBuffers, GpuPerceptual};
 use crate::grad::renderer::GpuRendererGrad;
 use crate::grad::splat::GpuSplatGrad;
@@ -142,6 +143,11 @@ pub struct GpuRenderHalf {
     backbone: Option<GpuReconstruct>,
     /// The lifting generators, when asked for.
     lift: Option<GpuLiftGrad>,
+    /// The DPT head, when asked for (with the backbone and the lifting generators).
+    dpt: Option<GpuDptGrad>,
+    /// Whether the last lifting forward read the DPT head's `F_local` (its gradient then goes
+    /// on into the head's backward).
+    lift_from_dpt: bool,
     /// The step's renderer gradients summed on the device (see [`Accumulated`]).
     acc: Accumulated,
     /// The splat and its backward, rebuilt when the Gaussian count changes.
@@ -196,6 +202,8 @@ impl GpuRenderHalf {
             percep,
             backbone: None,
             lift: None,
+            dpt: None,
+            lift_from_dpt: false,
             acc,
             splat: None,
             pending: None,
@@ -225,6 +233,34 @@ impl GpuRenderHalf {
     ) -> Result<Self> {
         self.lift = Some(GpuLiftGrad::new(&self.gpu, &self.tuning, cfg, weights)?);
         Ok(self)
+    }
+
+    /// Also runs the DPT head with `weights` by checkpoint key (every step uploads its own
+    /// with [`RenderHalf::set_dpt_weights`]): `F_local` then stays on the device between the
+    /// head and the lifting generators, both ways. Needs the backbone and the lifting
+    /// generators (build with [`GpuRenderHalf::with_backbone`] and
+    /// [`GpuRenderHalf::with_lifting`] first).
+    pub fn with_dpt(
+        mut self,
+        cfg: &ModelConfig,
+        weights: &HashMap<String, Vec<f32>>,
+    ) -> Result<Self> {
+        if self.backbone.is_none() || self.lift.is_none() {
+            return Err(input_err(
+                "render half",
+                "the DPT head on the device needs the backbone and the lifting generators there",
+            ));
+        }
+        self.dpt = Some(GpuDptGrad::new(&self.gpu, &self.tuning, cfg, weights)?);
+        Ok(self)
+    }
+
+    /// The device and the DPT head, or the error of a half built without it.
+    fn dpt(&mut self) -> std::result::Result<(&Gpu, &mut GpuDptGrad), BackendError> {
+        match &mut self.dpt {
+            Some(d) => Ok((&self.gpu, d)),
+            None => Err("built without the DPT head".into()),
+        }
     }
 
     /// The device and the lifting generators, or the error of a half built without them.
@@ -437,21 +473,66 @@ impl RenderHalf for GpuRenderHalf {
         &mut self,
         s: &LiftSample,
     ) -> std::result::Result<LiftedGaussians, BackendError> {
-        let (gpu, l) = self.lifting()?;
-        Ok(l.forward(gpu, s.f_local, s.encoding, s.plane_points, s.plane_dir)?)
+        let gpu = &*self.gpu;
+        let (Some(l), dpt) = (&mut self.lift, &self.dpt) else {
+            return Err("built without the lifting generators".into());
+        };
+        let input = match (s.f_local, dpt) {
+            (Some(v), _) => LiftInput::Host(v),
+            (None, Some(d)) => LiftInput::Device(d.f_local()),
+            (None, None) => return Err("no F_local given, and no DPT head here".into()),
+        };
+        self.lift_from_dpt = s.f_local.is_none();
+        Ok(l.forward(gpu, input, s.encoding, s.plane_points, s.plane_dir)?)
     }
 
     fn lift_backward(
         &mut self,
         grads: &LiftedGaussians,
     ) -> std::result::Result<Vec<f32>, BackendError> {
-        let (gpu, l) = self.lifting()?;
-        Ok(l.backward(gpu, grads)?)
+        if !self.lift_from_dpt {
+            let (gpu, l) = self.lifting()?;
+            return Ok(l.backward(gpu, grads)?);
+        }
+        let gpu = &*self.gpu;
+        let (Some(l), Some(d)) = (&mut self.lift, &mut self.dpt) else {
+            return Err("built without the lifting generators or the DPT head".into());
+        };
+        l.backward_on_device(gpu, grads)?;
+        d.backward_from(gpu, l.grad_f_local())?;
+        Ok(Vec::new())
     }
 
     fn lifting_grads(&mut self) -> std::result::Result<Vec<(String, Vec<f32>)>, BackendError> {
         let (gpu, l) = self.lifting()?;
         Ok(l.read_grads(gpu)?)
+    }
+
+    fn has_dpt(&self) -> bool {
+        self.dpt.is_some()
+    }
+
+    fn set_dpt_weights(
+        &mut self,
+        weights: &HashMap<String, Vec<f32>>,
+    ) -> std::result::Result<(), BackendError> {
+        let (gpu, d) = self.dpt()?;
+        let value = |key: &str| weights.get(key).map(|v| v.as_slice());
+        Ok(d.set_weights(gpu, &value)?)
+    }
+
+    fn dpt_forward(
+        &mut self,
+        tokens: [&[f32]; 4],
+        image: &[f32],
+    ) -> std::result::Result<(), BackendError> {
+        let (gpu, d) = self.dpt()?;
+        Ok(d.forward(gpu, tokens, image)?)
+    }
+
+    fn dpt_grads(&mut self) -> std::result::Result<Vec<(String, Vec<f32>)>, BackendError> {
+        let (gpu, d) = self.dpt()?;
+        Ok(d.read_grads(gpu)?)
     }
 
     fn set_renderer_weights(

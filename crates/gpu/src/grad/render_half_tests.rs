@@ -34,22 +34,28 @@ const BACKBONE_STEP_RTOL: f64 = 5e-3;
 /// effect on splatting as [`BACKBONE_STEP_RTOL`]'s.
 const LIFT_STEP_RTOL: f64 = 5e-3;
 
+/// Gradients with the backbone, the DPT head and the lifting generators on the GPU: as
+/// [`BACKBONE_STEP_RTOL`] and [`LIFT_STEP_RTOL`], the last bits of `F_local` moving the lifted
+/// Gaussians too.
+const DPT_STEP_RTOL: f64 = 5e-3;
+
 /// The loss terms: sums of the same f32 values in another order.
 const TERM_RTOL: f64 = 1e-5;
 
 /// A CPU state and a state whose rendering half is on the GPU, with the perceptual term (on
 /// the GPU with `gpu_percep`, else on the CPU from the GPU's crops) or without.
 fn states(percep: bool, gpu_percep: bool) -> Option<(TrainState, TrainState)> {
-    states_with(percep, gpu_percep, false, false)
+    states_with(percep, gpu_percep, false, false, false)
 }
 
 /// [`states`]; `backbone`: the tiny model's backbone frozen (as the release's is) and run on
-/// the GPU; `lifting`: the lifting generators on the GPU.
+/// the GPU; `lifting`: the lifting generators on the GPU; `dpt`: the DPT head too (with both).
 fn states_with(
     percep: bool,
     gpu_percep: bool,
     backbone: bool,
     lifting: bool,
+    dpt: bool,
 ) -> Option<(TrainState, TrainState)> {
     gpu()?;
     let mut cfg = TrainConfig::preset("tiny").unwrap();
@@ -93,6 +99,12 @@ fn states_with(
     } else {
         rh
     };
+    let rh = if dpt {
+        rh.with_dpt(&cfg.model, &split.dpt_weights().unwrap())
+            .unwrap()
+    } else {
+        rh
+    };
     split.set_render_half(Box::new(rh)).unwrap();
     Some((cpu, split))
 }
@@ -123,7 +135,7 @@ fn split_step_with_a_cpu_perceptual_term_matches_the_cpu_step() {
 /// every trained parameter's gradient (the backbone has none).
 #[test]
 fn split_step_with_the_backbone_on_the_gpu_matches_the_cpu_step() {
-    let Some((cpu, split)) = states_with(false, false, true, false) else {
+    let Some((cpu, split)) = states_with(false, false, true, false, false) else {
         return;
     };
     // The backbone's outputs themselves: the same f32 operations in other orders.
@@ -165,10 +177,20 @@ fn split_step_with_the_backbone_on_the_gpu_matches_the_cpu_step() {
 /// gradient of `F_local` crossing to the CPU), with every term on.
 #[test]
 fn split_step_with_the_lifting_generators_on_the_gpu_matches_the_cpu_step() {
-    let Some((cpu, split)) = states_with(true, true, false, true) else {
+    let Some((cpu, split)) = states_with(true, true, false, true, false) else {
         return;
     };
     compare_states_within(cpu, split, LIFT_STEP_RTOL);
+}
+
+/// The frozen backbone, the DPT head and the lifting generators on the GPU (`F_local` and its
+/// gradient never cross to the CPU; the DPT head's weight gradients do), every term on.
+#[test]
+fn split_step_with_the_dpt_head_on_the_gpu_matches_the_cpu_step() {
+    let Some((cpu, split)) = states_with(true, true, true, true, true) else {
+        return;
+    };
+    compare_states_within(cpu, split, DPT_STEP_RTOL);
 }
 
 fn compare_gradients(gpu_percep: bool) {
