@@ -2,8 +2,8 @@
 # The GPU check of issues 30/31, in one device call (see tools/device/README.md):
 # adapter facts, the GPU parity tests on a real driver (release size included, their measured
 # maxima printed), `bench drive` at release size for both Gaussian regimes, `bench
-# reconstruct` (f16 and f32), `bench renderer-grad` (issue 31: the renderer's training forward
-# and backward), `bench splat --device gpu`, `train-bench` on the GPU and the CPU (issue 31:
+# reconstruct` (f16 and f32), `bench renderer-grad` and `bench dpt-grad` (issue 31: the
+# renderer's and the DPT head's training forward and backward), `bench splat --device gpu`, `train-bench` on the GPU and the CPU (issue 31:
 # `train --device gpu`'s split step), `reenact` end to end (reconstruct on the GPU too), and a sweep of
 # convolution tilings (GAGAVATAR_GPU_TUNE, no rebuild), everything written to $OUT: a
 # summary.txt to read, one JSON per bench run (bench_*.json) and check.json gathering them.
@@ -120,6 +120,11 @@ timeout 90 "$BIN/gagavatar" bench renderer-grad --device gpu --preset "$PRESET" 
     > "$OUT/bench_renderer_grad.txt" 2>&1
 echo "exit $? (renderer-grad)" >> "$OUT/summary.txt"
 tail -5 "$OUT/bench_renderer_grad.txt" >> "$OUT/summary.txt"
+log "bench dpt-grad (the DPT head's training forward + backward per sample, f32), $PRESET seeded weights, ${GRAD_RUNS:-10} samples"
+timeout 90 "$BIN/gagavatar" bench dpt-grad --device gpu --preset "$PRESET" \
+    --runs "${GRAD_RUNS:-10}" > "$BIN/bench_dpt_grad.txt" 2>&1
+echo "exit $? (dpt-grad)" >> "$OUT/summary.txt"
+tail -4 "$BIN/bench_dpt_grad.txt" >> "$OUT/summary.txt"
 }
 
 want splat && {

@@ -54,6 +54,13 @@ gagavatar bench reconstruct --device gpu --preset tiny --json rec.json"
 gagavatar bench renderer-grad --device cpu --preset small --threads 2"
     )]
     RendererGrad(crate::cmd_bench_renderer_grad::RendererGradBench),
+    /// The DPT head's training forward and backward for one sample (every DPT weight's
+    /// gradient from a gradient of F_local) on a GPU, or on the CPU through candle's autograd.
+    #[command(
+        after_help = "Seeded random weights of the preset, random backbone outputs; the convolutions run in f32 on the GPU.\n\nExample:\n  gagavatar bench dpt-grad --device gpu --preset release --runs 10\n  \
+gagavatar bench dpt-grad --device cpu --preset release --threads 2"
+    )]
+    DptGrad(crate::cmd_bench_dpt_grad::DptGradBench),
     /// Face perception: tracking-mode landmarks per video frame, detection, the 256x256 matte.
     #[command(
         after_help = "Frames are images (a folder of them, or files), used in order as a video. Each frame is\ncopied right before it is timed, as a decoder would have just written it.\n\nExample:\n  ffmpeg -i clip.mp4 frames/%04d.png\n  gagavatar bench face frames --threads 2 --runs 3"
@@ -222,6 +229,7 @@ pub fn run(cmd: BenchCmd) -> Result<()> {
         BenchCmd::Drive(args) => crate::cmd_bench_drive::bench_drive(args),
         BenchCmd::Reconstruct(args) => crate::cmd_bench_reconstruct::bench_reconstruct(args),
         BenchCmd::RendererGrad(args) => crate::cmd_bench_renderer_grad::bench_renderer_grad(args),
+        BenchCmd::DptGrad(args) => crate::cmd_bench_dpt_grad::bench_dpt_grad(args),
         BenchCmd::Face(args) => bench_face(args),
         BenchCmd::Eval(args) => bench_eval(args),
         BenchCmd::Track(args) => bench_track(args),

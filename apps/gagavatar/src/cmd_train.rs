@@ -36,10 +36,11 @@ weights, optimizer, step, config) and weights.safetensors (the model alone, rele
 `gagavatar reenact --ckpt RUN/weights.safetensors` loads it; `gagavatar convert \
 RUN/weights.safetensors GAGAvatar.pt` makes the release's torch checkpoint). Ctrl-C writes a \
 checkpoint and stops.\n\n\
-Device: --device gpu runs each sample's splatting, neural renderer, image, head-box and perceptual \
-terms (forward and backward) and a frozen DINOv2's forward on the GPU, f32; the DPT head, the \
-Gaussian generators (forward and backward), the lifting term and Adam stay on the CPU, so checkpoints are the same files and a run moves between devices at any \
-resume. --device auto takes a real GPU when there is one. Under mpirun each rank takes the GPU \
+Device: --device gpu runs each sample's splatting, neural renderer, image, head-box, perceptual \
+and lifting terms and the two lifting generators (forward and backward) on the GPU, f32, and \
+with a frozen DINOv2 (the release's) its forward and the DPT head (forward and backward) too; \
+the expression generator (forward and backward) and Adam stay on the CPU, so checkpoints are \
+the same files and a run moves between devices at any resume. --device auto takes a real GPU when there is one. Under mpirun each rank takes the GPU \
 of its local rank.\n\n\
 Speed: unless the environment sets it, CANDLE_BARRIER_POOL_SPIN_LIMIT=0 is used (candle's \
 element-wise pool otherwise spin-waits between the many small ops of a step: 4x slower tiny \
@@ -622,8 +623,8 @@ pub fn run_bench(a: TrainBenchArgs) -> Result<()> {
             } else {
                 ""
             },
-            gpu_parts(&cfg.model),
             rec * 1e3,
+            gpu_parts(&cfg.model),
             dev * 1e3,
             host * 1e3,
             back * 1e3

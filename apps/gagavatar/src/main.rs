@@ -4,6 +4,7 @@
 mod animate;
 mod bench_stats;
 mod cmd_bench;
+mod cmd_bench_dpt_grad;
 mod cmd_bench_drive;
 mod cmd_bench_reconstruct;
 mod cmd_bench_renderer_grad;

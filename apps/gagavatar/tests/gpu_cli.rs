@@ -413,6 +413,97 @@ fn bench_renderer_grad_runs_on_both_devices() {
     );
 }
 
+/// `bench dpt-grad` times the DPT head's training forward and backward on the GPU and on the
+/// CPU.
+#[test]
+fn bench_dpt_grad_runs_on_both_devices() {
+    let out = run(
+        &[
+            "bench", "dpt-grad", "--device", "gpu", "--preset", "tiny", "--runs", "1",
+        ],
+        &[],
+    );
+    if !have_gpu(&out) {
+        return;
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    for want in [
+        "DPT head forward + backward on the GPU",
+        "tiny: 56 weight tensors, f32",
+        "every DPT weight's gradient: median",
+    ] {
+        assert!(
+            text.contains(want),
+            "bench dpt-grad --device gpu: no `{want}` in\n{text}"
+        );
+    }
+    let out = ok(&[
+        "bench",
+        "dpt-grad",
+        "--device",
+        "cpu",
+        "--preset",
+        "tiny",
+        "--runs",
+        "1",
+        "--threads",
+        "1",
+    ]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("DPT head forward + backward on the CPU (candle autograd): tiny (1 threads)"),
+        "bench dpt-grad --device cpu:\n{text}"
+    );
+}
+
+/// `train-bench --device gpu` with a frozen backbone (the release's setting, here on the tiny
+/// model) runs the backbone and the DPT head on the GPU too, and says so.
+#[test]
+fn train_bench_with_a_frozen_backbone_runs_the_dpt_head_on_the_gpu() {
+    let tiny = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../crates/train/configs/tiny.toml"),
+    )
+    .expect("the tiny preset");
+    assert!(
+        tiny.contains("\n[model]\n"),
+        "no [model] table in the tiny preset"
+    );
+    let cfg = std::env::temp_dir().join(format!("gagavatar_frozen_{}.toml", std::process::id()));
+    std::fs::write(
+        &cfg,
+        tiny.replace("\n[model]\n", "\n[model]\nfreeze_backbone = true\n"),
+    )
+    .unwrap();
+    let out = run(
+        &[
+            "train-bench",
+            "--config",
+            &cfg.to_string_lossy(),
+            "--batch",
+            "1",
+            "--runs",
+            "1",
+            "--device",
+            "gpu",
+        ],
+        &[],
+    );
+    if !have_gpu(&out) {
+        return;
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    for want in [
+        "(backbone, DPT head, lifting generators, splatting and renderer on ",
+        "(backbone frozen)",
+        "split step medians",
+    ] {
+        assert!(
+            text.contains(want),
+            "train-bench --device gpu: no `{want}` in\n{text}"
+        );
+    }
+}
+
 /// `bench splat --device gpu` times the splatting's training forward and backward.
 #[test]
 fn bench_splat_runs_the_backward_on_the_gpu() {

@@ -1,7 +1,8 @@
 //! The rendering half of a training step on another device (`train --device gpu`): the
 //! coarse splatting of the target's Gaussians, the neural renderer and the image and head-box
 //! terms, forward and backward, for one sample at a time. The trainer keeps the master weights,
-//! the reconstruction networks, the perceptual and lifting terms and Adam; per step it uploads
+//! the reconstruction networks, the perceptual and lifting terms (unless the backend computes
+//! them) and Adam; per step it uploads
 //! the renderer's weights, per sample the Gaussians, the camera, the target and the noise, and
 //! takes back the loss terms and the gradients of the Gaussians and of every renderer weight.
 //!
@@ -10,7 +11,8 @@
 //! generators (`gs_generator_l0` / `l1`, four convolutions over `F_local` at plane size each):
 //! forward per sample to the lifted Gaussians, backward from their gradients to the gradient
 //! of `F_local` (which the trainer carries into the DPT head) and the generators' weight
-//! gradients, summed over the step on the device. With the backbone there, it may run the DPT
+//! gradients, summed over the step on the device, and the lifting term on those points. With
+//! the backbone there, it may run the DPT
 //! head as well: `F_local` then never leaves the device, and only the head's weight gradients
 //! come back.
 //!
@@ -83,6 +85,11 @@ pub struct LiftSample<'a> {
     pub plane_points: &'a [f32],
     /// `[3]`: the view direction.
     pub plane_dir: &'a [f32],
+    /// `[V, 3]`: the target's scaled FLAME vertices when the run has the lifting term; a
+    /// backend may compute the term itself ([`LiftedGaussians::point`]).
+    pub targets: Option<&'a [f32]>,
+    /// The sample's share of the step's loss (`1 / B`): the scale of the term's gradient.
+    pub term_scale: f32,
 }
 
 /// The lifted Gaussians of one sample, both planes (`l0` then `l1`; `l0` alone with the
@@ -100,6 +107,10 @@ pub struct LiftedGaussians {
     pub scales: Vec<f32>,
     /// `[P S^2, 4]`, normalised
     pub rotations: Vec<f32>,
+    /// The lifting term of these points against [`LiftSample::targets`], when the backend
+    /// computed it: its gradient (times [`LiftSample::term_scale`]) is then added in
+    /// [`RenderHalf::lift_backward`], and the caller leaves the term out.
+    pub point: Option<f64>,
 }
 
 /// A device that runs the rendering half (see the module's text).

@@ -145,7 +145,8 @@ pub struct SplitTiming {
     pub device_s: f64,
     /// The host work around them: copies, the perceptual term when it runs here.
     pub host_s: f64,
-    /// The reconstruction's backward in candle (and the lifting term).
+    /// The reconstruction's backward in candle (and the lifting term, unless the device
+    /// computed it).
     pub backward_s: f64,
 }
 
@@ -312,7 +313,8 @@ impl TrainState {
     /// The step's forward and backward with the rendering half on `rh`: reconstruction in the
     /// candle graph (without the lifting generators when `rh` runs them), each sample's
     /// splatting, renderer and image terms (forward and backward) on `rh`, the perceptual
-    /// distance of the crops `rh` returns and the lifting term here; then one backward of the
+    /// distance of the crops `rh` returns and the lifting term here (unless `rh` computes
+    /// them); then one backward of the
     /// reconstruction from the Gaussians' gradients (or, with the lifting generators on `rh`,
     /// from the expression Gaussians' and `F_local`'s; with the DPT head there too, from the
     /// expression Gaussians' alone, the head's weight gradients coming from `rh`). Every term
@@ -520,6 +522,9 @@ impl TrainState {
                     let l = rh
                         .lift_forward(&LiftSample {
                             f_local: (!dpt_here).then_some(host[5][i].as_slice()),
+                            // The expression Gaussians' means are the target's vertices.
+                            targets: self.losses.cfg.lifting.then_some(host[0][i].as_slice()),
+                            term_scale: inv_b,
                             encoding: &enc[i],
                             plane_points: &points[i],
                             plane_dir: &dir[i],
@@ -641,7 +646,10 @@ impl TrainState {
                 }
             }
             if let Some(l) = &lifted {
-                if self.losses.cfg.lifting {
+                if let Some(p) = l.point {
+                    // The device computed the term; its gradient joins in lift_backward.
+                    point_sum += p;
+                } else if self.losses.cfg.lifting {
                     // The lifting term of this sample (the batch's is the samples' mean).
                     let n = l.means.len() / 3;
                     let xyz = Var::from_slice(&l.means, (1, n, 3), &Device::Cpu)?;

@@ -18,6 +18,7 @@ use gagavatar_train::LiftedGaussians;
 
 use super::conv::{conv_backward, part_floats, ConvGrad};
 use super::layers::{act_backward, Kept};
+use super::lifting::GpuLiftingLoss;
 use super::params::{read_grads, write_params, Packed, Param, ParamSource, Store};
 use crate::conv::{Act, At, Conv, Ops};
 use crate::device::Gpu;
@@ -27,6 +28,20 @@ use crate::reconstruct::ops::GaussianOut;
 use crate::tuning::Tuning;
 
 const LIFT_BACKWARD: &str = include_str!("../shaders/lift_backward.wgsl");
+const ACCUMULATE: &str = include_str!("../shaders/accumulate.wgsl");
+
+/// The lifting term on the lifted points of the last forward (`GpuLiftingLoss` on the means
+/// buffer), its gradient added to the means' in the backward.
+struct Term {
+    loss: GpuLiftingLoss,
+    /// dL/dlifted `[n, 3]`, copied out of the loss's output.
+    grad: wgpu::Buffer,
+    /// The scale of that gradient (the sample's share of the step's loss), `accumulate.wgsl`'s.
+    scale: wgpu::Buffer,
+    add: Step,
+    /// Whether the last forward computed the term (its gradient is then due).
+    pending: bool,
+}
 
 /// One convolution of a generator: weight and gradient buffer indices, bias offset (in the
 /// shared vector buffer and its gradient).
@@ -65,6 +80,7 @@ pub struct GpuLiftGrad {
     backward: Vec<Step>,
     /// Backward passes added since the last read.
     samples: usize,
+    term: Option<Term>,
 }
 
 /// Where a forward's `F_local` `[F, S, S]` comes from.
@@ -342,7 +358,57 @@ impl GpuLiftGrad {
             forward: fwd,
             backward: bwd,
             samples: 0,
+            term: None,
         })
+    }
+
+    /// Also computes the lifting term against `targets` points per sample
+    /// ([`GpuLiftGrad::lifting_term`]).
+    pub fn with_lifting_term(mut self, gpu: &Gpu, targets: usize) -> Result<Self> {
+        let n = self.planes * self.s * self.s;
+        let loss = GpuLiftingLoss::new(gpu, &self.outs[4], n, targets)?;
+        let grad = gpu.buffer("lifting term gradient", 12 * n as u64);
+        let scale = gpu.uniform("lifting term scale", &Params::new().f(1.0).u(0).u(0).u(0));
+        let k = gpu.kernel(
+            "accumulate",
+            ACCUMULATE,
+            &[],
+            &[Bind::Uniform, Bind::Uniform, Bind::Read, Bind::ReadWrite],
+        )?;
+        let u = gpu.uniform(
+            "lifting term add",
+            &Params::new().u((3 * n) as u32).u(0).u(0).u(0),
+        );
+        let bg = gpu.bind(&k, &[&u, &scale, &grad, &self.grads[4]])?;
+        self.term = Some(Term {
+            loss,
+            grad,
+            scale,
+            add: Step::new(k, bg, linear_grid(3 * n, 256)),
+            pending: false,
+        });
+        Ok(self)
+    }
+
+    /// The lifting term of the last forward's points against `targets` `[m, 3]` (the target's
+    /// scaled FLAME vertices): returns its value; the next backward adds `scale` times its
+    /// gradient to the lifted means' (the trainer's `1 / B`).
+    pub fn lifting_term(&mut self, gpu: &Gpu, targets: &[f32], scale: f32) -> Result<f64> {
+        let Some(t) = &mut self.term else {
+            return Err(input_err(
+                "lifting term",
+                "the lifting generators were built without it",
+            ));
+        };
+        t.loss.set_targets(gpu, targets)?;
+        gpu.queue.write_buffer(
+            &t.scale,
+            0,
+            bytemuck::cast_slice(&Params::new().f(scale).u(0).u(0).u(0).words()),
+        );
+        gpu.submit(t.loss.steps());
+        t.pending = true;
+        Ok(f64::from(gpu.read_f32(&t.loss.out, 1)?[0]))
     }
 
     /// Overwrites every weight with `value(key)` (checkpoint keys); the gradient sums start
@@ -408,6 +474,9 @@ impl GpuLiftGrad {
         gpu.queue
             .write_buffer(&self.plane, 0, bytemuck::cast_slice(&plane));
         gpu.submit(&self.forward);
+        if let Some(t) = &mut self.term {
+            t.pending = false;
+        }
         let n = self.planes * m;
         let w = widths(self.c);
         let srcs: Vec<(&wgpu::Buffer, usize)> =
@@ -420,6 +489,7 @@ impl GpuLiftGrad {
             scales: next(),
             rotations: next(),
             means: next(),
+            point: None,
         })
     }
 
@@ -441,6 +511,7 @@ impl GpuLiftGrad {
     pub fn backward_on_device(&mut self, gpu: &Gpu, grads: &LiftedGaussians) -> Result<()> {
         let n = self.planes * self.s * self.s;
         let w = widths(self.c);
+        let term_pending = self.term.as_ref().is_some_and(|t| t.pending);
         let given = [
             &grads.features,
             &grads.opacities,
@@ -456,6 +527,17 @@ impl GpuLiftGrad {
                 ));
             }
             gpu.queue.write_buffer(buf, 0, bytemuck::cast_slice(g));
+        }
+        if let (Some(t), true) = (&mut self.term, term_pending) {
+            let mut enc = gpu
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("lifting term gradient"),
+                });
+            enc.copy_buffer_to_buffer(&t.loss.out, 4, &t.grad, 0, 12 * n as u64);
+            gpu.queue.submit([enc.finish()]);
+            gpu.submit(std::slice::from_ref(&t.add));
+            t.pending = false;
         }
         if self.samples == 0 {
             let mut enc = gpu

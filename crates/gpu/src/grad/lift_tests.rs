@@ -75,6 +75,7 @@ fn case(cfg: TrainConfig) -> Case {
         opacities: seeded(n, 3),
         scales: seeded(3 * n, 4),
         rotations: seeded(4 * n, 5),
+        point: None,
     };
     Case {
         f_local: trace.f_local.detach(),

@@ -7,7 +7,7 @@
 //! `train --device gpu` runs [`render_half::GpuRenderHalf`]: each sample's splatting, renderer,
 //! image and perceptual terms, lifting generators ([`lift::GpuLiftGrad`]) and, with a frozen
 //! backbone, DPT head ([`dpt::GpuDptGrad`]), forward and backward, behind `gagavatar_train`'s
-//! `RenderHalf`; the expression generator, the lifting term and Adam stay on the CPU for now
+//! `RenderHalf`, with the lifting term; the expression generator and Adam stay on the CPU for now
 //! (the split step's gradients are checked against the CPU step's in `render_half_tests`).
 //!
 //! They are recorded [`Step`](crate::kernel::Step)s like the forward's, and they reuse the

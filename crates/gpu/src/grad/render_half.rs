@@ -231,7 +231,10 @@ impl GpuRenderHalf {
         cfg: &ModelConfig,
         weights: &HashMap<String, Vec<f32>>,
     ) -> Result<Self> {
-        self.lift = Some(GpuLiftGrad::new(&self.gpu, &self.tuning, cfg, weights)?);
+        self.lift = Some(
+            GpuLiftGrad::new(&self.gpu, &self.tuning, cfg, weights)?
+                .with_lifting_term(&self.gpu, cfg.n_vertices)?,
+        );
         Ok(self)
     }
 
@@ -483,7 +486,11 @@ impl RenderHalf for GpuRenderHalf {
             (None, None) => return Err("no F_local given, and no DPT head here".into()),
         };
         self.lift_from_dpt = s.f_local.is_none();
-        Ok(l.forward(gpu, input, s.encoding, s.plane_points, s.plane_dir)?)
+        let mut lifted = l.forward(gpu, input, s.encoding, s.plane_points, s.plane_dir)?;
+        if let Some(t) = s.targets {
+            lifted.point = Some(l.lifting_term(gpu, t, s.term_scale)?);
+        }
+        Ok(lifted)
     }
 
     fn lift_backward(
