@@ -154,6 +154,29 @@ pub fn shared_gpu() -> Option<Arc<Gpu>> {
 }
 
 /// The model of `cfg` with seeded weights.
+/// A tensor's values as f32, flattened.
+pub fn flat(t: &candle_core::Tensor) -> Vec<f32> {
+    t.flatten_all()
+        .unwrap()
+        .to_dtype(candle_core::DType::F32)
+        .unwrap()
+        .to_vec1()
+        .unwrap()
+}
+
+/// `n` values in [-1, 1) from a xorshift stream of `seed` (reproducible test inputs).
+pub fn seeded(n: usize, seed: u64) -> Vec<f32> {
+    let mut x = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    (0..n)
+        .map(|_| {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            ((x >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+        })
+        .collect()
+}
+
 pub fn seeded_model(cfg: &ModelConfig, seed: u64) -> GagAvatar {
     let map: HashMap<String, Tensor> = init_weights(cfg, seed)
         .unwrap()

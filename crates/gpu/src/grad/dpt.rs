@@ -18,8 +18,8 @@ use std::collections::HashMap;
 use gagavatar_net::ModelConfig;
 
 use super::conv::{conv_backward, part_floats, row_sums, ConvGrad};
-use super::layers::{act_backward, Kept};
-use super::params::{read_grads, write_params, Packed, Param, ParamSource, Store};
+use super::layers::{act_backward, col2im, Kept};
+use super::params::{host_weight, read_grads, write_params, Packed, Param, ParamSource, Store};
 use crate::conv::{Act, At, Conv, Ops};
 use crate::device::Gpu;
 use crate::error::{input_err, GpuError, Result};
@@ -29,7 +29,6 @@ use crate::tuning::Tuning;
 
 const RESIZE_AC_BACKWARD: &str = include_str!("../shaders/resize_ac_backward.wgsl");
 const SHUFFLE_BACKWARD: &str = include_str!("../shaders/shuffle_backward.wgsl");
-const COL2IM: &str = include_str!("../shaders/col2im.wgsl");
 
 const PREFIX: &str = "base_model";
 
@@ -131,19 +130,6 @@ pub struct GpuDptGrad {
     _keep: Vec<wgpu::Buffer>,
 }
 
-fn get(weights: &HashMap<String, Vec<f32>>, key: &str, len: usize) -> Result<Vec<f32>> {
-    let v = weights
-        .get(key)
-        .ok_or_else(|| GpuError::Weights(format!("no {key}")))?;
-    if v.len() != len {
-        return Err(GpuError::Weights(format!(
-            "{key} has {} values, expected {len}",
-            v.len()
-        )));
-    }
-    Ok(v.clone())
-}
-
 impl GpuDptGrad {
     /// Uploads the DPT weights (`weights` by checkpoint key, `base_model.projects.0.weight`
     /// ...) and records the forward and backward.
@@ -180,10 +166,11 @@ impl GpuDptGrad {
                      bias: bool|
          -> Result<Layer> {
             let wkey = format!("{key}.weight");
-            let (weight, grad_weight) = st.param(&wkey, get(weights, &wkey, cout * cin * k * k)?);
+            let (weight, grad_weight) =
+                st.param(&wkey, host_weight(weights, &wkey, cout * cin * k * k)?);
             let bias = if bias {
                 let bkey = format!("{key}.bias");
-                Some(vecs_host.push(bkey.clone(), &get(weights, &bkey, cout)?) as u32)
+                Some(vecs_host.push(bkey.clone(), &host_weight(weights, &bkey, cout)?) as u32)
             } else {
                 None
             };
@@ -214,11 +201,12 @@ impl GpuDptGrad {
                         c: ck,
                         taps: kk * kk,
                     };
-                    let w = p.to_product(&get(weights, &p.key, ck * ck * kk * kk)?);
+                    let w = p.to_product(&host_weight(weights, &p.key, ck * ck * kk * kk)?);
                     let (weight, grad_weight) = st.param(&p.key, w);
                     permuted.push(p);
                     let bkey = format!("{key}.bias");
-                    let bias = vecs_host.push(bkey.clone(), &get(weights, &bkey, ck)?) as u32;
+                    let bias =
+                        vecs_host.push(bkey.clone(), &host_weight(weights, &bkey, ck)?) as u32;
                     Resize::Up(
                         Layer {
                             cin: ck,
@@ -509,7 +497,14 @@ impl GpuDptGrad {
                         d_feat,
                         Some(At::new(&d_cols)),
                     )?);
-                    bwd.push(col2im(gpu, (ck, g, g), (sk, sk), &d_cols, &d_projected)?);
+                    bwd.push(col2im(
+                        gpu,
+                        (ck, g, g),
+                        (3, 2, 1),
+                        (sk, sk),
+                        &d_cols,
+                        &d_projected,
+                    )?);
                     keep.extend([cols, d_cols]);
                     At::new(&d_projected)
                 }
@@ -923,37 +918,6 @@ fn shuffle_backward(
     );
     let bg = gpu.bind(&kern, &[&u, dy.buf, dx])?;
     Ok(Step::new(kern, bg, linear_grid(c * k * k * g * g, 256)))
-}
-
-/// Records the input gradient `[c, h, w]` of a 3x3 stride-2 pad-1 convolution's patch matrix
-/// (`im2col`) from the matrix's gradient `[9 c, oh ow]`.
-fn col2im(
-    gpu: &Gpu,
-    (c, h, w): (usize, usize, usize),
-    (oh, ow): (usize, usize),
-    cols: &wgpu::Buffer,
-    dx: &wgpu::Buffer,
-) -> Result<Step> {
-    let kern = gpu.kernel(
-        "col2im",
-        COL2IM,
-        &[],
-        &[Bind::Uniform, Bind::Read, Bind::ReadWrite],
-    )?;
-    let u = gpu.uniform(
-        "col2im",
-        &Params::new()
-            .u(c as u32)
-            .u(h as u32)
-            .u(w as u32)
-            .u(3)
-            .u(2)
-            .u(1)
-            .u(oh as u32)
-            .u(ow as u32),
-    );
-    let bg = gpu.bind(&kern, &[&u, cols, dx])?;
-    Ok(Step::new(kern, bg, linear_grid(c * h * w, 256)))
 }
 
 /// Records the input gradient `dx` `[c, h, w]` of `Ops::resize_to` (bilinear, align_corners)

@@ -12,7 +12,7 @@ use gagavatar_train::{TrainConfig, TrainState};
 
 use super::dpt::{resize_ac_backward, GpuDptGrad};
 use crate::conv::At;
-use crate::testutil::{assert_close_rel, gpu};
+use crate::testutil::{assert_close_rel, flat, gpu, seeded};
 use crate::Tuning;
 
 /// F_local relative to its largest value: the same f32 layers summed in another order.
@@ -33,27 +33,6 @@ const RESIZE_RTOL: f64 = 1e-6;
 
 const DPT_PREFIX: &str = "base_model.";
 const BACKBONE_PREFIX: &str = "base_model.dino_model.";
-
-fn flat(t: &Tensor) -> Vec<f32> {
-    t.flatten_all()
-        .unwrap()
-        .to_dtype(DType::F32)
-        .unwrap()
-        .to_vec1()
-        .unwrap()
-}
-
-fn seeded(n: usize, seed: u64) -> Vec<f32> {
-    let mut x = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    (0..n)
-        .map(|_| {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            ((x >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-        })
-        .collect()
-}
 
 struct Case {
     state: TrainState,

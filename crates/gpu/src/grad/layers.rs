@@ -11,6 +11,7 @@ const RESIZE_BACKWARD: &str = include_str!("../shaders/resize_backward.wgsl");
 const RMS_NORM_BACKWARD: &str = include_str!("../shaders/rms_norm_backward.wgsl");
 const L1_GRAD: &str = include_str!("../shaders/l1_grad.wgsl");
 const L1_SUM: &str = include_str!("../shaders/l1_sum.wgsl");
+const COL2IM: &str = include_str!("../shaders/col2im.wgsl");
 
 /// An activation and the value its backward reads (what the forward keeps).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -87,6 +88,40 @@ pub fn resize_backward(
     );
     let g = gpu.bind(&k, &[&u, dy.buf, dx.buf])?;
     Ok(Step::new(k, g, linear_grid(c * h_in * w_in, 256)))
+}
+
+/// Records the input gradient `dx` `[c, h, w]` of a `k x k`, `stride`, `pad` convolution's
+/// patch matrix (`Ops::im2col`) from the matrix's gradient `cols` `[c k k, oh ow]` (whole
+/// buffers; `dx` is overwritten).
+#[allow(clippy::too_many_arguments)]
+pub fn col2im(
+    gpu: &Gpu,
+    (c, h, w): (usize, usize, usize),
+    (k, stride, pad): (usize, usize, usize),
+    (oh, ow): (usize, usize),
+    cols: &wgpu::Buffer,
+    dx: &wgpu::Buffer,
+) -> Result<Step> {
+    let kern = gpu.kernel(
+        "col2im",
+        COL2IM,
+        &[],
+        &[Bind::Uniform, Bind::Read, Bind::ReadWrite],
+    )?;
+    let u = gpu.uniform(
+        "col2im",
+        &Params::new()
+            .u(c as u32)
+            .u(h as u32)
+            .u(w as u32)
+            .u(k as u32)
+            .u(stride as u32)
+            .u(pad as u32)
+            .u(oh as u32)
+            .u(ow as u32),
+    );
+    let bg = gpu.bind(&kern, &[&u, cols, dx])?;
+    Ok(Step::new(kern, bg, linear_grid(c * h * w, 256)))
 }
 
 /// Records the input gradient of `Ops::rms_norm` over `n` values: `x` is the forward's input,

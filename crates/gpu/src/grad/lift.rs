@@ -19,7 +19,7 @@ use gagavatar_train::LiftedGaussians;
 use super::conv::{conv_backward, part_floats, ConvGrad};
 use super::layers::{act_backward, Kept};
 use super::lifting::GpuLiftingLoss;
-use super::params::{read_grads, write_params, Packed, Param, ParamSource, Store};
+use super::params::{host_weight, read_grads, write_params, Packed, Param, ParamSource, Store};
 use crate::conv::{Act, At, Conv, Ops};
 use crate::device::Gpu;
 use crate::error::{input_err, GpuError, Result};
@@ -122,18 +122,7 @@ impl GpuLiftGrad {
         let e = DIR_ENCODING_DIM;
         let (m, out) = (s * s, c + 9);
         let planes = if cfg.one_plane { 1 } else { 2 };
-        let get = |key: &str, len: usize| -> Result<Vec<f32>> {
-            let v = weights
-                .get(key)
-                .ok_or_else(|| GpuError::Weights(format!("no {key}")))?;
-            if v.len() != len {
-                return Err(GpuError::Weights(format!(
-                    "{key} has {} values, expected {len}",
-                    v.len()
-                )));
-            }
-            Ok(v.clone())
-        };
+        let get = |key: &str, len: usize| host_weight(weights, key, len);
         let mut st = Store::new(gpu);
         let mut vecs_host = Packed::default();
         let mut gens: Vec<[Layer; 4]> = Vec::with_capacity(planes);

@@ -11,7 +11,7 @@ use gagavatar_train::bench::synthetic_batch;
 use gagavatar_train::{LiftedGaussians, TrainConfig, TrainState};
 
 use super::lift::{GpuLiftGrad, LiftInput};
-use crate::testutil::{assert_close_rel, gpu};
+use crate::testutil::{assert_close_rel, flat, gpu, seeded};
 use crate::Tuning;
 
 /// Forward values relative to each attribute's largest: the same f32 convolutions summed in
@@ -36,27 +36,6 @@ struct Case {
     dir: Tensor,
     /// Random upstream gradients of the lifted Gaussians (the layouts of LiftedGaussians).
     upstream: LiftedGaussians,
-}
-
-fn flat(t: &Tensor) -> Vec<f32> {
-    t.flatten_all()
-        .unwrap()
-        .to_dtype(DType::F32)
-        .unwrap()
-        .to_vec1()
-        .unwrap()
-}
-
-fn seeded(n: usize, seed: u64) -> Vec<f32> {
-    let mut x = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    (0..n)
-        .map(|_| {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            ((x >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-        })
-        .collect()
 }
 
 fn case(cfg: TrainConfig) -> Case {

@@ -99,6 +99,24 @@ impl<'g> Store<'g> {
     }
 }
 
+/// A copy of the `len` values of `key` in `weights` (a module's weights by checkpoint key).
+pub(crate) fn host_weight(
+    weights: &std::collections::HashMap<String, Vec<f32>>,
+    key: &str,
+    len: usize,
+) -> Result<Vec<f32>> {
+    let v = weights
+        .get(key)
+        .ok_or_else(|| GpuError::Weights(format!("no {key}")))?;
+    if v.len() != len {
+        return Err(GpuError::Weights(format!(
+            "{key} has {} values, expected {len}",
+            v.len()
+        )));
+    }
+    Ok(v.clone())
+}
+
 /// Every parameter's gradient, read back, by key.
 pub(crate) fn read_grads(
     gpu: &Gpu,

@@ -16,7 +16,7 @@ use gagavatar_train::perceptual::{
 };
 
 use super::conv::{input_grad, ConvGrad};
-use super::layers::{act_backward, l1_sum, Kept};
+use super::layers::{act_backward, col2im, l1_sum, Kept};
 use crate::conv::{Act, At, Conv, Ops};
 use crate::device::Gpu;
 use crate::error::{GpuError, Result};
@@ -26,7 +26,6 @@ use crate::tuning::Tuning;
 const AFFINE: &str = include_str!("../shaders/channel_affine.wgsl");
 const MAXPOOL: &str = include_str!("../shaders/maxpool.wgsl");
 const MAXPOOL_BACKWARD: &str = include_str!("../shaders/maxpool_backward.wgsl");
-const COL2IM: &str = include_str!("../shaders/col2im.wgsl");
 const DISTANCE: &str = include_str!("../shaders/percep_distance.wgsl");
 
 /// The three `[3, size, size]` crops and the two prediction crops' gradients, shared by the
@@ -612,27 +611,14 @@ fn backward(
                         sigmoid: false,
                         out: At::new(sc.cols),
                     })?);
-                    let (ic, ih, iw) = in_shape;
-                    let kern = gpu.kernel(
-                        "col2im",
-                        COL2IM,
-                        &[],
-                        &[Bind::Uniform, Bind::Read, Bind::ReadWrite],
-                    )?;
-                    let u = gpu.uniform(
-                        "col2im",
-                        &Params::new()
-                            .u(ic as u32)
-                            .u(ih as u32)
-                            .u(iw as u32)
-                            .u(f.k as u32)
-                            .u(f.stride as u32)
-                            .u(f.pad as u32)
-                            .u(h as u32)
-                            .u(w as u32),
-                    );
-                    let bg = gpu.bind(&kern, &[&u, sc.cols, dst])?;
-                    steps.push(Step::new(kern, bg, linear_grid(ic * ih * iw, 256)));
+                    steps.push(col2im(
+                        gpu,
+                        in_shape,
+                        (f.k, f.stride, f.pad),
+                        (h, w),
+                        sc.cols,
+                        dst,
+                    )?);
                 } else {
                     let cg = ConvGrad {
                         cin: f.cin,
